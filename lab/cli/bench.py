@@ -1,0 +1,49 @@
+"""`lab bench NAME`: benchmarks that print measured figures (speed and accuracy targets live here,
+never in timed unit tests).  Each benchmark is a module exposing `add_arguments(parser)` and
+`run(args) -> int`; it is imported only when its command runs."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+BENCHES: dict[str, tuple[str, str]] = {
+    # name: (module, one-line help)
+    "slam": ("estimation.bench_slam", "GraphSLAM vs SF-GraphSLAM vs the paper's Powell method (Monte Carlo)"),
+    "fiducials": ("estimation.bench_fiducials", "AprilTag detection time and pose error on rendered images"),
+    "mle": ("estimation.bench_mle", "IPJR sequencing, MLE vs EKF vs open loop"),
+    "run": ("procedures.bench_run", "end-to-end simulated procedure runs (BORG, tetrahelix)"),
+}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="run a benchmark and print its figures")
+    bench_sub = p.add_subparsers(dest="bench", metavar="NAME")
+    bench_sub.required = True
+    for name, (module_name, help_text) in BENCHES.items():
+        bp = bench_sub.add_parser(name, help=help_text)
+        bp.set_defaults(func=_runner(module_name), _bench_parser=bp)
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+            bp.set_defaults(func=_missing(name))
+            continue
+        module.add_arguments(bp)
+
+
+def _runner(module_name: str):
+    def run(args: argparse.Namespace) -> int:
+        return importlib.import_module(module_name).run(args)
+
+    return run
+
+
+def _missing(name: str):
+    def run(args: argparse.Namespace) -> int:
+        from lab.errors import UserError
+
+        raise UserError(f"benchmark {name!r} is not available in this build")
+
+    return run
