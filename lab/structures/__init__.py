@@ -1,0 +1,2 @@
+"""Design models of the structures we build: the BORG truss (`borg`) and tetrahedral IPJR trusses
+(`trusses`)."""
