@@ -1,0 +1,254 @@
+"""The step runner: runs a procedure's named steps under a run recorder, with progress, operator
+prompts, Ctrl-C handling, dry runs, checkpoints and resume.
+
+Invariants (Bluesky's `finally:`, not its machinery):
+- every exit path stops every device that moved, writes the run's stop record and summary.json;
+- a step's records are on disk (chunk ended, fsynced) before the next step starts, and so is the
+  checkpoint that lets `lab resume RUN_DIR` re-run the interrupted step and keep everything before;
+- steps are safe to repeat: a step re-run from its checkpoint gives the same result (simulated noise
+  is seeded per step).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Protocol
+
+from lab.errors import LabError, UserError
+
+RUN_FILE = "run.mcap"
+RUN_INFO = "run.json"
+CHECKPOINT = "checkpoint.json"
+SUMMARY = "summary.json"
+
+
+@dataclass(frozen=True)
+class StepSpec:
+    index: int                  # 0-based position in the plan
+    name: str                   # e.g. "module 13D"
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+class StopRun(LabError):
+    """Raised by a step to end the run early on purpose (e.g. a flagged module with --on-flag stop).
+    The run ends `aborted` with this reason; it is not a crash."""
+
+
+class Procedure(Protocol):
+    name: str
+
+    def plan(self) -> list[StepSpec]: ...
+    def dry_run_problems(self, steps: list[StepSpec]) -> list[str]: ...
+    def execute(self, step: StepSpec, run: "RunContext") -> None: ...
+    def checkpoint(self) -> dict[str, Any]: ...
+    def restore(self, state: dict[str, Any], steps_done: list[StepSpec], run: "RunContext") -> None: ...
+    def summary(self, result: str, reason: str) -> dict[str, Any]: ...
+    def stop_devices(self) -> list[str]: ...
+    def close(self) -> None: ...
+
+
+class Operator:
+    """Asks the operator; `auto` answers every prompt with its default (simulation, CI).
+    Every question and answer goes to the run's /operator channel."""
+
+    def __init__(self, auto: bool, recorder: Any = None, input_fn: Callable[[str], str] = input) -> None:
+        self.auto = auto
+        self.recorder = recorder
+        self._input = input_fn
+
+    def ask(self, question: str, choices: tuple[str, ...] = ("ok",), default: str | None = None) -> str:
+        default = default if default is not None else choices[0]
+        if self.auto:
+            answer = default
+        else:
+            prompt = f"{question} [{'/'.join(c.upper() if c == default else c for c in choices)}] "
+            while True:
+                raw = self._input(prompt).strip().lower()
+                answer = raw or default
+                if answer in choices:
+                    break
+                print(f"please answer one of: {', '.join(choices)}", file=sys.stderr)
+        if self.recorder is not None:
+            self.recorder.log_prompt(question, answer, automatic=self.auto)
+        return answer
+
+    def confirm(self, instruction: str) -> None:
+        """An instruction the operator acknowledges (place a module, attach IPJRs)."""
+        answer = self.ask(instruction, ("done", "abort"), "done")
+        if answer == "abort":
+            raise StopRun(f"operator aborted at: {instruction}")
+
+
+@dataclass
+class RunContext:
+    run_dir: Path
+    recorder: Any
+    operator: Operator
+    step: StepSpec | None = None
+    progress: Callable[[str], None] = lambda text: None
+
+
+def _atomic_write_json(path: Path, value: Any) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "w") as f:
+        json.dump(value, f, indent=1, default=_json_default)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _json_default(o: Any) -> Any:
+    import numpy as np
+
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if hasattr(o, "__dataclass_fields__"):
+        from dataclasses import asdict
+
+        return asdict(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+@dataclass
+class RunOutcome:
+    result: str          # completed | aborted | failed
+    reason: str
+    summary: dict[str, Any]
+    run_dir: Path
+
+    @property
+    def exit_code(self) -> int:
+        return {"completed": 0, "aborted": 3, "failed": 1}[self.result]
+
+
+def dry_run(procedure: Procedure) -> int:
+    """Check every planned move against limits and the workspace; move nothing."""
+    steps = procedure.plan()
+    problems = procedure.dry_run_problems(steps)
+    print(f"dry run of {procedure.name}: {len(steps)} steps planned")
+    for p in problems:
+        print(f"  REFUSED: {p}")
+    print("all planned moves are within limits" if not problems else f"{len(problems)} planned moves refused")
+    return 0 if not problems else 2
+
+
+def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_auto: bool,
+        recorder_factory: Callable[[Path], Any], resume: dict[str, Any] | None = None,
+        show_progress: bool = True) -> RunOutcome:
+    """Run `procedure` into `run_dir`.  `info` (procedure name, its CLI parameters, rig, scenario)
+    is written to run.json so that `lab resume` can rebuild the procedure.  `resume` is a loaded
+    checkpoint: its completed steps are kept and the interrupted one runs again."""
+    from tqdm import tqdm
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if resume is None:
+        _atomic_write_json(run_dir / RUN_INFO, info)
+    steps = procedure.plan()
+    start = 0 if resume is None else int(resume["steps_completed"])
+    recorder = recorder_factory(run_dir / RUN_FILE)
+    operator = Operator(operator_auto, recorder)
+    ctx = RunContext(run_dir, recorder, operator)
+    result, reason, tb = "completed", "", ""
+    # SIGTERM (e.g. a supervisor stopping us) is handled like Ctrl-C: stop devices, close the run.
+    previous_term = signal.getsignal(signal.SIGTERM)
+    if _main_thread():
+        signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    bar = tqdm(total=len(steps), initial=start, desc=procedure.name, unit="step",
+               disable=not show_progress, file=sys.stderr, leave=True)
+    try:
+        if resume is not None:
+            procedure.restore(resume["state"], steps[:start], ctx)
+            recorder.log_text("info", f"resumed at step {start} of {len(steps)}")
+        for step in steps[start:]:
+            ctx.step = step
+            bar.set_postfix_str(step.name)
+            ctx.progress = bar.set_postfix_str
+            with recorder.step(step.name, step.index, step.params):
+                procedure.execute(step, ctx)
+            _atomic_write_json(run_dir / CHECKPOINT, {
+                "steps_completed": step.index + 1, "last_step": step.name,
+                "state": procedure.checkpoint(), "time": time.time()})
+            _atomic_write_json(run_dir / SUMMARY, procedure.summary("running", ""))
+            bar.update(1)
+    except KeyboardInterrupt:
+        result, reason = "aborted", f"interrupted by the operator during {ctx.step.name if ctx.step else 'start-up'}"
+        tb = traceback.format_exc()
+    except StopRun as exc:
+        result, reason = "aborted", str(exc)
+    except Exception as exc:  # a device fault or a bug: stop, record, report
+        result, reason = "failed", f"{type(exc).__name__}: {exc}"
+        tb = traceback.format_exc()
+    finally:
+        bar.close()
+        stopped = _stop_all(procedure)
+        if stopped:
+            reason = f"{reason} (stopped: {', '.join(stopped)})" if reason else reason
+        summary = procedure.summary(result, reason)
+        summary.setdefault("result", result)
+        summary.setdefault("reason", reason)
+        try:
+            recorder.log_json("summary", summary)
+        except Exception:
+            pass
+        recorder.stop(result, reason, tb)
+        _atomic_write_json(run_dir / SUMMARY, summary)
+        procedure.close()
+        if _main_thread():
+            signal.signal(signal.SIGTERM, previous_term)
+    return RunOutcome(result, reason, summary, run_dir)
+
+
+def _stop_all(procedure: Procedure) -> list[str]:
+    """Stop every device that moved; a failure to stop one must not keep the others moving."""
+    try:
+        return procedure.stop_devices()
+    except Exception as exc:  # pragma: no cover - reported, never raised over the original error
+        print(f"lab: warning: stopping devices failed: {exc}", file=sys.stderr)
+        return []
+
+
+def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+def load_resume(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(run.json info, checkpoint) of an interrupted run; a clear error if it can't be resumed."""
+    info_path, ckpt_path = run_dir / RUN_INFO, run_dir / CHECKPOINT
+    if not info_path.exists():
+        raise UserError(f"{run_dir} is not a run directory (no {RUN_INFO})")
+    info = json.loads(info_path.read_text())
+    ckpt = json.loads(ckpt_path.read_text()) if ckpt_path.exists() else {"steps_completed": 0, "state": {}}
+    summary_path = run_dir / SUMMARY
+    if summary_path.exists():
+        if json.loads(summary_path.read_text()).get("result") == "completed":
+            raise UserError(f"{run_dir}: the run completed; nothing to resume")
+    return info, ckpt
+
+
+def archive_previous_log(run_dir: Path) -> Path | None:
+    """Move the interrupted run's MCAP aside (recovering it if it has no footer), so the resumed
+    run writes a fresh run.mcap that starts with everything the interrupted one completed."""
+    old = run_dir / RUN_FILE
+    if not old.exists():
+        return None
+    k = 1
+    while (run_dir / f"run.part{k}.mcap").exists():
+        k += 1
+    part = run_dir / f"run.part{k}.mcap"
+    os.replace(old, part)
+    return part
