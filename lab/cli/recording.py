@@ -1,0 +1,45 @@
+"""`lab recover FILE [-o OUT]` and `lab review RUN.mcap [--save out.rrd]` (docs/recording.md)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    r = sub.add_parser("recover", help="rewrite a run file left without its footer (killed run) into a readable one")
+    r.add_argument("file", help="the .mcap file to recover")
+    r.add_argument("-o", "--output", help="output file (default: FILE with .recovered.mcap)")
+    r.add_argument("--force", action="store_true", help="overwrite the output file if it exists")
+    r.set_defaults(func=_recover)
+
+    v = sub.add_parser("review", help="open a run in Rerun: design structure, tag poses, camera path, plots")
+    v.add_argument("file", help="the run's .mcap file (a file cut short by a kill works too)")
+    v.add_argument("--save", metavar="RRD", help="write an .rrd file instead of starting a viewer")
+    v.set_defaults(func=_review)
+
+
+def _recover(args: argparse.Namespace) -> int:
+    from lab.recorder.recover import recover
+
+    rep = recover(args.file, args.output, overwrite=args.force)
+    state = "was already complete" if rep.was_complete else f"had no footer ({rep.stop_reason})"
+    print(f"{args.file} {state}")
+    print(f"kept {rep.messages} messages, {rep.steps_completed} steps completed"
+          + (f", step {rep.interrupted_step} was interrupted" if rep.interrupted_step else "")
+          + (f"; dropped {rep.dropped_bytes} bytes of an incomplete tail" if rep.dropped_bytes else ""))
+    if not rep.had_stop:
+        print("the run had no stop record; added one: result failed, recovered")
+    print(f"wrote {rep.path_out}")
+    return 0
+
+
+def _review(args: argparse.Namespace) -> int:
+    from lab.review import review
+
+    rep = review(args.file, args.save)
+    print(f"{rep.path}: {rep.messages} messages, {rep.steps} steps completed, result {rep.result}")
+    print(f"design: {rep.design or 'none (no structure recorded or named in the start record)'}")
+    if rep.scan.stop_reason:
+        print(f"note: the file was cut short ({rep.scan.stop_reason}); showing every complete record")
+    print(f"wrote {args.save}" if args.save else "sent to the Rerun viewer")
+    return 0
