@@ -1,0 +1,81 @@
+"""Waiting for a motion, the same way for every device: poll until idle, with a deadline from the
+physics, and stop the device on every way out that is not success (timeout, link error, Ctrl-C).
+Bluesky's invariant, small: whatever happens, what moved is stopped and the error says so."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+from drivers.errors import DeviceError, DeviceTimeout
+
+Progress = Callable[[float], None]   # fraction done, 0..1
+
+
+@dataclass(frozen=True)
+class MotionPlan:
+    """What the physics says about one move: how long it should take and how long we wait."""
+
+    description: str      # "to 90.000 deg"
+    expected_s: float     # distance / speed + settle
+    timeout_s: float      # 1.5 x travel time + settle + margin
+
+    @staticmethod
+    def of(description: str, distance: float, speed: float, settle_s: float, margin_s: float) -> MotionPlan:
+        travel = abs(distance) / speed if speed > 0 else 0.0
+        return MotionPlan(description, travel + settle_s, 1.5 * travel + settle_s + margin_s)
+
+
+@dataclass(frozen=True)
+class Poll:
+    moving: bool
+    fraction: float       # 0..1 progress estimate
+    where: str            # "at 41.250 deg", for messages
+
+
+def annotate(exc: BaseException, text: str) -> None:
+    """Append to a device error's message (what the CLI prints), or add a note to any other."""
+    if isinstance(exc, DeviceError):
+        exc.message = f"{exc.message}; {text}"
+        exc.args = (f"{exc.device}: {exc.message}",)
+    else:
+        exc.add_note(text)
+
+
+def stop_quietly(device: str, stop: Callable[[], None]) -> str:
+    """Try to stop; return what happened, in words, for the error message."""
+    try:
+        stop()
+        return "motion stopped"
+    except Exception as exc:  # the link may be the very thing that failed
+        return f"STOP failed too ({exc}): the device may still be moving"
+
+
+def wait_until_idle(device: str, plan: MotionPlan, poll: Callable[[], Poll], stop: Callable[[], None],
+                    progress: Progress | None = None) -> Poll:
+    """Poll until the device is idle; stop it and raise if that takes longer than the plan allows
+    or if anything goes wrong while waiting."""
+    interval = min(0.1, max(0.005, plan.expected_s / 20.0))
+    deadline = time.monotonic() + plan.timeout_s
+    last: Poll | None = None
+    try:
+        while True:
+            last = poll()
+            if progress is not None:
+                progress(min(1.0, max(0.0, last.fraction)))
+            if not last.moving:
+                return last
+            if time.monotonic() > deadline:
+                outcome = stop_quietly(device, stop)
+                raise DeviceTimeout(device, f"move {plan.description} not finished within {plan.timeout_s:.3g} s "
+                                            f"(expected {plan.expected_s:.3g} s), {last.where}; {outcome}")
+            time.sleep(interval)
+    except DeviceTimeout as exc:
+        if "not finished within" in exc.message:
+            raise
+        annotate(exc, f"while moving {plan.description}: " + stop_quietly(device, stop))
+        raise
+    except (DeviceError, KeyboardInterrupt) as exc:
+        annotate(exc, f"while moving {plan.description}: " + stop_quietly(device, stop))
+        raise

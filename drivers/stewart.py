@@ -1,0 +1,172 @@
+"""Stewart-platform driver (docs/protocols.md §3): the camera carrier.
+
+The controller only moves legs; this driver owns the kinematics: a pose is turned into six leg
+lengths (inverse kinematics), checked against the workspace (not inverted, leg lengths, joint
+angles) and refused before anything is sent if unreachable; the reported pose is the forward
+kinematics of the measured legs.
+
+Poses are `home_T_platform` (a Pose3, or the 6-vector x y z roll pitch yaw in m and rad, roll-pitch-
+yaw about the fixed base axes), relative to the home pose; `world_T_camera` composes the rig's
+mounting: world_T_base * base_T_platform * platform_T_camera."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from drivers.errors import DeviceFault, MotionIncomplete, ProtocolError, RigMismatch, WorkspaceError
+from drivers.motion import MotionPlan, Poll, Progress, annotate, stop_quietly, wait_until_idle
+from drivers.stewart_kinematics import IkResult, StewartKinematics, as_pose, describe
+from drivers.transport import LineTransport
+from drivers.wire import parse_fields, parse_float, parse_floats
+from lab.comms import CommsSink, null_sink
+from lab.config import StewartConfig
+from lab.geometry import Pose3
+
+ARRIVAL_TOLERANCE_MM = 0.01
+
+
+@dataclass(frozen=True)
+class StewartHardware:
+    min_mm: float
+    max_mm: float
+    speed_mm_s: float
+    settle_s: float
+
+
+@dataclass(frozen=True)
+class StewartStatus:
+    state: str            # IDLE, MOVING, FAULT
+    fault: str
+
+    @property
+    def moving(self) -> bool:
+        return self.state == "MOVING"
+
+
+class Stewart:
+    kind = "stewart"
+
+    def __init__(self, config: StewartConfig, transport: LineTransport) -> None:
+        self.config = config
+        self.name = config.name
+        self.link = transport
+        self.kinematics = StewartKinematics(config.geometry)
+        self._hw: StewartHardware | None = None
+        self._last_pose = Pose3()
+
+    @classmethod
+    def open(cls, config: StewartConfig, sink: CommsSink = null_sink) -> Stewart:
+        link = config.link
+        return cls(config, LineTransport(config.name, link.url, sink, reply_timeout_s=link.reply_timeout_s,
+                                         retries=link.retries))
+
+    # -- pure: no I/O ---------------------------------------------------------------------------
+    def ik(self, pose: Pose3 | Sequence[float]) -> IkResult:
+        return self.kinematics.inverse(pose)
+
+    def check_pose(self, pose: Pose3 | Sequence[float]) -> np.ndarray:
+        """Leg lengths (m) of a reachable pose; WorkspaceError naming the limit otherwise."""
+        res = self.kinematics.inverse(pose)
+        if not res.reachable:
+            raise WorkspaceError(self.name, describe(pose), res.reason)
+        return res.legs_m
+
+    def world_T_camera(self, pose: Pose3 | Sequence[float], platform_T_camera: Pose3) -> Pose3:
+        return self.config.world_T_base.compose(self.kinematics.base_T_platform(pose)).compose(platform_T_camera)
+
+    # -- queries --------------------------------------------------------------------------------
+    def identify(self) -> str:
+        ident = self.link.request("ID?")
+        if not ident.startswith("STEWART"):
+            raise ProtocolError(self.name, f"ID? says {ident!r}: this is not a Stewart controller (check the rig URL)")
+        return ident
+
+    def hardware(self) -> StewartHardware:
+        if self._hw is None:
+            req = "LIMITS?"
+            f = parse_fields(self.name, req, self.link.request(req), ("min_mm", "max_mm", "speed_mm_s", "settle_s"))
+            hw = StewartHardware(*(parse_float(self.name, req, f[k]) for k in ("min_mm", "max_mm", "speed_mm_s", "settle_s")))
+            g = self.config.geometry
+            if g.leg_min_m * 1000 < hw.min_mm - 1e-9 or g.leg_max_m * 1000 > hw.max_mm + 1e-9:
+                raise RigMismatch(self.name, f"rig leg limits [{g.leg_min_m * 1000:g}, {g.leg_max_m * 1000:g}] mm exceed "
+                                             f"the hardware stroke [{hw.min_mm:g}, {hw.max_mm:g}] mm: fix "
+                                             f"[stewart] leg_min_m/leg_max_m")
+            if hw.speed_mm_s <= 0:
+                raise ProtocolError(self.name, f"LIMITS? reports speed {hw.speed_mm_s} mm/s")
+            self._hw = hw
+        return self._hw
+
+    def status(self) -> StewartStatus:
+        req = "STATUS?"
+        f = parse_fields(self.name, req, self.link.request(req), ("state", "fault"))
+        return StewartStatus(f["state"], f["fault"])
+
+    def legs(self) -> np.ndarray:
+        """Measured leg lengths, m."""
+        return np.array(parse_floats(self.name, "LEGS?", self.link.request("LEGS?"), 6)) / 1000.0
+
+    def pose(self) -> Pose3:
+        """The platform's pose (home_T_platform), by forward kinematics of the measured legs."""
+        legs = self.legs()
+        try:
+            self._last_pose = self.kinematics.forward(legs, guess=self._last_pose)
+        except ValueError as exc:
+            raise ProtocolError(self.name, f"measured legs {np.round(legs * 1000, 3).tolist()} mm: {exc}") from None
+        return self._last_pose
+
+    # -- motion ---------------------------------------------------------------------------------
+    def stop(self) -> None:
+        self.link.request("STOP", idempotent=True)
+
+    def clear(self) -> None:
+        self.link.request("CLEAR", idempotent=True)
+
+    def move_to(self, pose: Pose3 | Sequence[float], progress: Progress | None = None) -> Pose3:
+        """Move the platform to a pose relative to home (checked first); returns the reported pose."""
+        target = as_pose(pose)
+        legs_m = self.check_pose(target)
+        return self._move_legs(legs_m, f"to {describe(target)}", progress)
+
+    def home(self, progress: Progress | None = None) -> Pose3:
+        return self.move_to(Pose3(), progress)
+
+    def _move_legs(self, legs_m: np.ndarray, description: str, progress: Progress | None) -> Pose3:
+        hw = self.hardware()
+        start = self.legs()
+        target_mm = np.round(legs_m * 1000.0, 3)
+        plan = MotionPlan.of(description, float(np.max(np.abs(target_mm - start * 1000.0))), hw.speed_mm_s,
+                             hw.settle_s, self.config.link.margin_s)
+        line = "LEGS " + " ".join(f"{x:.3f}" for x in target_mm)
+        try:
+            self.link.request(line, idempotent=False)
+        except DeviceFault:
+            raise
+        except Exception as exc:
+            annotate(exc, stop_quietly(self.name, self.stop))
+            raise
+        span = float(np.max(np.abs(target_mm / 1000.0 - start))) or 1.0
+
+        def poll() -> Poll:
+            st = self.status()
+            if st.state == "FAULT":
+                raise DeviceFault(self.name, 40, f"fault {st.fault}", description)
+            if not st.moving:
+                return Poll(False, 1.0, "idle")
+            now = self.legs()
+            return Poll(True, 1.0 - float(np.max(np.abs(target_mm / 1000.0 - now))) / span,
+                        f"legs at {np.round(now * 1000, 3).tolist()} mm")
+
+        wait_until_idle(self.name, plan, poll, self.stop, progress)
+        reached = self.legs()
+        err = np.abs(reached * 1000.0 - target_mm)
+        if np.max(err) > ARRIVAL_TOLERANCE_MM:
+            i = int(np.argmax(err))
+            raise MotionIncomplete(self.name, f"stopped short of the target {description}: leg {i + 1} at "
+                                              f"{reached[i] * 1000:.3f} mm, commanded {target_mm[i]:.3f} mm")
+        return self.pose()
+
+    def close(self) -> None:
+        self.link.close()

@@ -1,0 +1,175 @@
+"""Turntable driver (docs/protocols.md §2): home, move to an angle, position, stop, limits.
+
+Angles are radians here and degrees on the wire.  The rig's soft limits are checked before
+anything is sent; the device's own (hardware) limits, speed and settling time are read once with
+`LIMITS?` and give every move its timeout."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from drivers.errors import DeviceFault, MotionIncomplete, OutOfRange, ProtocolError, RigMismatch
+from drivers.motion import MotionPlan, Poll, Progress, annotate, stop_quietly, wait_until_idle
+from drivers.transport import LineTransport
+from drivers.wire import parse_fields, parse_float
+from lab.comms import CommsSink, null_sink
+from lab.config import TurntableConfig
+
+ARRIVAL_TOLERANCE_DEG = 0.01
+
+
+@dataclass(frozen=True)
+class TurntableStatus:
+    state: str            # IDLE, MOVING, HOMING, FAULT
+    angle_rad: float
+    target_rad: float
+    homed: bool
+    fault: str            # "none" or a one-word reason
+
+    @property
+    def moving(self) -> bool:
+        return self.state in ("MOVING", "HOMING")
+
+
+@dataclass(frozen=True)
+class TurntableHardware:
+    min_deg: float
+    max_deg: float
+    speed_deg_s: float
+    settle_s: float
+
+
+class Turntable:
+    kind = "turntable"
+
+    def __init__(self, config: TurntableConfig, transport: LineTransport) -> None:
+        self.config = config
+        self.name = config.name
+        self.link = transport
+        self._hw: TurntableHardware | None = None
+
+    @classmethod
+    def open(cls, config: TurntableConfig, sink: CommsSink = null_sink) -> Turntable:
+        link = config.link
+        return cls(config, LineTransport(config.name, link.url, sink, reply_timeout_s=link.reply_timeout_s,
+                                         retries=link.retries))
+
+    # -- queries ------------------------------------------------------------------------------
+    def identify(self) -> str:
+        ident = self.link.request("ID?")
+        if not ident.startswith("TURNTABLE"):
+            raise ProtocolError(self.name, f"ID? says {ident!r}: this is not a turntable (check the rig URL)")
+        return ident
+
+    def hardware(self) -> TurntableHardware:
+        """The device's travel, speed and settling time (read once), checked against the rig."""
+        if self._hw is None:
+            req = "LIMITS?"
+            f = parse_fields(self.name, req, self.link.request(req), ("min_deg", "max_deg", "speed_deg_s", "settle_s"))
+            hw = TurntableHardware(*(parse_float(self.name, req, f[k]) for k in
+                                     ("min_deg", "max_deg", "speed_deg_s", "settle_s")))
+            lo, hi = math.degrees(self.config.min_rad), math.degrees(self.config.max_rad)
+            if lo < hw.min_deg - 1e-9 or hi > hw.max_deg + 1e-9:
+                raise RigMismatch(self.name, f"rig limits [{lo:g}, {hi:g}] deg exceed the hardware travel "
+                                             f"[{hw.min_deg:g}, {hw.max_deg:g}] deg: fix [turntable] min_deg/max_deg")
+            if hw.speed_deg_s <= 0:
+                raise ProtocolError(self.name, f"LIMITS? reports speed {hw.speed_deg_s} deg/s")
+            self._hw = hw
+        return self._hw
+
+    def status(self) -> TurntableStatus:
+        req = "STATUS?"
+        f = parse_fields(self.name, req, self.link.request(req), ("state", "pos_deg", "target_deg", "homed", "fault"))
+        return TurntableStatus(
+            state=f["state"],
+            angle_rad=math.radians(parse_float(self.name, req, f["pos_deg"])),
+            target_rad=math.radians(parse_float(self.name, req, f["target_deg"])),
+            homed=f["homed"] == "1",
+            fault=f["fault"],
+        )
+
+    def position(self) -> float:
+        """Current angle, rad."""
+        return math.radians(parse_float(self.name, "POS?", self.link.request("POS?")))
+
+    @property
+    def limits_rad(self) -> tuple[float, float]:
+        return self.config.min_rad, self.config.max_rad
+
+    def check_angle(self, angle_rad: float) -> None:
+        """Refuse an angle outside the rig's limits (no I/O: usable for --dry-run)."""
+        lo, hi = self.limits_rad
+        if not math.isfinite(angle_rad) or not lo - 1e-12 <= angle_rad <= hi + 1e-12:
+            raise OutOfRange(self.name, "turntable angle", math.degrees(angle_rad), (math.degrees(lo), math.degrees(hi)),
+                             "deg", "rig [turntable] min_deg/max_deg")
+
+    # -- motion -------------------------------------------------------------------------------
+    def stop(self) -> None:
+        self.link.request("STOP", idempotent=True)
+
+    def clear(self) -> None:
+        self.link.request("CLEAR", idempotent=True)
+
+    def home(self, progress: Progress | None = None) -> float:
+        """Find the index mark; afterwards the angle is 0.  Returns the angle (rad)."""
+        hw = self.hardware()
+        st = self.status()
+        # Before homing the reported angle may be anything: allow a full sweep of the travel.
+        distance = abs(math.degrees(st.angle_rad)) if st.homed else hw.max_deg - hw.min_deg
+        plan = MotionPlan.of("home", distance, hw.speed_deg_s, hw.settle_s, self.config.link.margin_s)
+        self._command("HOME")
+        final = self._wait(plan, 0.0, math.degrees(st.angle_rad), progress)
+        if not final.homed:
+            raise MotionIncomplete(self.name, f"homing ended without finding the index (at "
+                                              f"{math.degrees(final.angle_rad):.3f} deg)")
+        return final.angle_rad
+
+    def move_to(self, angle_rad: float, progress: Progress | None = None) -> float:
+        """Move to an absolute angle (rad) and wait until settled; returns the reached angle."""
+        self.check_angle(angle_rad)
+        hw = self.hardware()
+        start = self.status()
+        target_deg = math.degrees(angle_rad)
+        start_deg = math.degrees(start.angle_rad)
+        plan = MotionPlan.of(f"to {target_deg:.3f} deg", target_deg - start_deg, hw.speed_deg_s, hw.settle_s,
+                             self.config.link.margin_s)
+        self._command(f"MOVE {target_deg:.3f}")
+        final = self._wait(plan, target_deg, start_deg, progress)
+        reached = math.degrees(final.angle_rad)
+        if abs(reached - target_deg) > ARRIVAL_TOLERANCE_DEG:
+            raise MotionIncomplete(self.name, f"stopped at {reached:.3f} deg, short of the target {target_deg:.3f} deg "
+                                              f"(state {final.state}, fault {final.fault})")
+        return final.angle_rad
+
+    def ensure_homed(self, progress: Progress | None = None) -> None:
+        if not self.status().homed:
+            self.home(progress)
+
+    def _command(self, line: str) -> None:
+        """Send a motion command; if its fate is unknown (no reply, garbled, link lost), stop."""
+        try:
+            self.link.request(line, idempotent=False)
+        except DeviceFault:
+            raise  # the device refused: nothing moved
+        except Exception as exc:
+            annotate(exc, stop_quietly(self.name, self.stop))
+            raise
+
+    def _wait(self, plan: MotionPlan, target_deg: float, start_deg: float, progress: Progress | None) -> TurntableStatus:
+        span = abs(target_deg - start_deg) or 1.0
+        holder: list[TurntableStatus] = []
+
+        def poll() -> Poll:
+            st = self.status()
+            holder.append(st)
+            pos = math.degrees(st.angle_rad)
+            if st.state == "FAULT":
+                raise DeviceFault(self.name, 40, f"fault {st.fault} at {pos:.3f} deg", plan.description)
+            return Poll(st.moving, 1.0 - abs(target_deg - pos) / span, f"at {pos:.3f} deg")
+
+        wait_until_idle(self.name, plan, poll, self.stop, progress)
+        return holder[-1]
+
+    def close(self) -> None:
+        self.link.close()
