@@ -406,15 +406,15 @@ class _Review:
         base = f"{frame_entity(msg.frame_id)}/estimate/tags"
         outlines, labels, errs, lines = [], [], [], []
         d = self.design
-        to_design = self.frame_transform(d.frame_id, msg.frame_id) if d is not None else None
+        est_T_design = self.frame_transform(d.frame_id, msg.frame_id) if d is not None else None
         for est in msg.estimates:
             tid = m.tag_id_of(est.entity)
             p = m.pose_from_proto(est.pose)
             size = d.tags[tid].size_m if d is not None and tid in d.tags else 0.10
             outlines.append(tag_outline(p, size))
             labels.append(str(tid) if tid is not None else est.entity)
-            if tid is not None and d is not None and tid in d.tags and to_design is not None:
-                design_in_est = to_design.inverse().compose(d.tags[tid].pose)  # est_frame_T_tag (design)
+            if tid is not None and d is not None and tid in d.tags and est_T_design is not None:
+                design_in_est = est_T_design.compose(d.tags[tid].pose)  # the design pose, in the estimate's frame
                 err = float(np.linalg.norm(p.translation() - design_in_est.translation()))
                 errs.append(err)
                 lines.append([design_in_est.translation(), p.translation()])
