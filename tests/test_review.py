@@ -119,6 +119,27 @@ def test_review_draws_the_borg_design_from_lab_structures_when_the_run_only_name
     assert len(_column(ch["/world/structure/design/edges"], "LineStrips3D:strips")[0]) == len(model.edges)
     labels = _column(ch["/world/structure/design/tags"], "LineStrips3D:labels")[0]
     assert len(labels) == len(model.tags) == 48 and "1 2D-B" in labels
+    # The same model recorded into the run with its tags (RunRecorder.log_design).
+    small = borg.build_borg(2)
+    run2, rrd2 = tmp_path / "borg2.mcap", tmp_path / "borg2.rrd"
+    with RunRecorder(run2, "borg", {}) as rec:
+        rec.log_design("borg:2", small)
+    review(run2, rrd2)
+    labels2 = _column(_chunks(rrd2)["/world/structure/design/tags"], "LineStrips3D:labels")[0]
+    assert len(labels2) == len(small.tags)
+
+
+def test_a_design_recorded_in_the_run_is_drawn_as_recorded(tmp_path: Path) -> None:
+    trusses = pytest.importorskip("lab.structures.trusses")
+    model = trusses.build_truss("tetrahelix:6")
+    run, rrd = tmp_path / "truss.mcap", tmp_path / "truss.rrd"
+    with RunRecorder(run, "truss", {}, structure="borg:2") as rec:  # the recorded design wins over the name
+        rec.log_design("tetrahelix:6", model)
+    rep = review(run, rrd)
+    assert rep.design == "tetrahelix:6 (recorded)"
+    ch = _chunks(rrd)
+    assert np.allclose(_column(ch["/world/structure/design/nodes"], "Points3D:positions")[0], model.nodes)
+    assert len(_column(ch["/world/structure/design/edges"], "LineStrips3D:strips")[0]) == len(model.edges)
 
 
 def test_review_of_a_killed_run_shows_what_was_recorded(tmp_path: Path) -> None:

@@ -361,6 +361,15 @@ class RunRecorder:
                                                         node_positions=pts.reshape(-1).tolist(), edges=flat_edges,
                                                         tags=list(tags)), _ns(t_s))
 
+    def log_design(self, name: str, model: Any, frame_id: str = "structure", t_s: float | None = None) -> None:
+        """Record a design model (a BORG `BorgModel` or a `TrussModel`: anything with `nodes` and
+        `edges`, and optionally `tags` {id: TagSpec}) on /structure, so the run file carries the
+        exact design it was checked against."""
+        tags = [m.DesignTag(id=int(tid), label=getattr(t, "label", ""), module=getattr(t, "module", ""),
+                            pose=m.pose_to_proto(t.structure_T_tag), size_m=float(getattr(t, "size_m", 0.10)))
+                for tid, t in sorted(getattr(model, "tags", {}).items())]
+        self.log_structure(name, model.nodes, list(model.edges), tags, frame_id, t_s)
+
     def log_record(self, topic: str, message: ProtoMessage) -> None:
         """Any protobuf message (our lab.* domain records, or a Foxglove schema).  Its `timestamp`
         field, if it has one and it is set, becomes the MCAP log time; unset, it is filled with now."""
