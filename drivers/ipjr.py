@@ -1,0 +1,326 @@
+"""IPJR driver (IPJR paper §5; docs/protocols.md §4–5): one driver, two transports.
+
+An IPJR clamps onto a telescoping strut and sets its length with a linear actuator (Firgelli L-16,
+140 mm stroke) whose potentiometer gives the extension.  The same commands reach it either over
+HTTP GET (its Raspberry Pi) or the serial line (its Arduino); `_HttpWire` and `_SerialWire` are the
+only places that differ.
+
+Lengths:
+- extension (m) from potentiometer volts through the rig's calibration (`volts_retracted` at 0,
+  `volts_extended` at full stroke, linear in between);
+- strut length = attach offset + extension.  When the operator attaches the IPJR they measure the
+  strut (the paper's initial M_L) and call `attach(measured_length_m)`, which fixes the offset.
+
+`set_length(L)` is the paper's controller: measure M, move round((L − M) / d_step) steps,
+re-measure, until |L − M| < tolerance (0.5 mm).  It refuses a target outside the stroke before
+moving, and stops with `LengthControlError` when the error does not shrink twice in a row
+(divergence: the true step is more than twice the assumed one, or the actuator is stuck) or after
+`max_tries` cycles."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from drivers.errors import DeviceFault, LengthControlError, OutOfRange, ProtocolError
+from drivers.motion import MotionPlan, Poll, Progress, annotate, stop_quietly, wait_until_idle
+from drivers.transport import HttpTransport, LineTransport, Transport
+from drivers.wire import parse_fields, parse_float
+from lab.comms import CommsSink, null_sink
+from lab.config import IpjrConfig
+
+
+@dataclass(frozen=True)
+class IpjrHardware:
+    stroke_mm: float
+    step_mm: float
+    speed_mm_s: float
+    settle_s: float
+    max_steps: int
+
+
+@dataclass(frozen=True)
+class LengthResult:
+    length_m: float                         # last measured strut length
+    error_m: float                          # target − measured
+    tries: int                              # move-measure cycles used
+    history: list[tuple[int, float]] = field(default_factory=list)   # (steps, measured length m)
+
+
+class _Wire(Protocol):
+    link: Transport
+
+    def identify(self) -> str: ...
+    def limits(self) -> IpjrHardware: ...
+    def volts(self) -> float: ...
+    def step(self, n: int) -> None: ...
+    def moving(self) -> bool: ...
+    def stop(self) -> None: ...
+    def clear(self) -> None: ...
+    def status(self) -> dict[str, Any]: ...
+
+
+class _SerialWire:
+    """The Arduino's line protocol (docs/protocols.md §4)."""
+
+    def __init__(self, name: str, link: LineTransport) -> None:
+        self.name, self.link = name, link
+
+    def identify(self) -> str:
+        ident = self.link.request("ID?")
+        if not ident.startswith("IPJR"):
+            raise ProtocolError(self.name, f"ID? says {ident!r}: this is not an IPJR (check the rig URL)")
+        return ident
+
+    def limits(self) -> IpjrHardware:
+        req = "LIMITS?"
+        f = parse_fields(self.name, req, self.link.request(req),
+                         ("stroke_mm", "step_mm", "speed_mm_s", "settle_s", "max_steps"))
+        return IpjrHardware(*(parse_float(self.name, req, f[k]) for k in ("stroke_mm", "step_mm", "speed_mm_s",
+                                                                           "settle_s")),
+                            int(parse_float(self.name, req, f["max_steps"])))
+
+    def volts(self) -> float:
+        return parse_float(self.name, "V?", self.link.request("V?"))
+
+    def step(self, n: int) -> None:
+        self.link.request(f"STEP {n}", idempotent=False)
+
+    def moving(self) -> bool:
+        reply = self.link.request("MOVING?")
+        if reply not in ("0", "1"):
+            raise ProtocolError(self.name, f"reply to 'MOVING?' is {reply!r}, expected 0 or 1")
+        return reply == "1"
+
+    def stop(self) -> None:
+        self.link.request("STOP", idempotent=True)
+
+    def clear(self) -> None:
+        self.link.request("CLEAR", idempotent=True)
+
+    def status(self) -> dict[str, Any]:
+        req = "STATUS?"
+        f = parse_fields(self.name, req, self.link.request(req), ("state", "volts", "fault"))
+        return {"state": f["state"].lower(), "volts": parse_float(self.name, req, f["volts"]), "fault": f["fault"]}
+
+
+class _HttpWire:
+    """The Raspberry Pi's GET API (docs/protocols.md §5)."""
+
+    def __init__(self, name: str, link: HttpTransport) -> None:
+        self.name, self.link = name, link
+
+    def _get(self, path: str, params: dict[str, Any] | None = None, *, idempotent: bool, keys: tuple[str, ...]) -> dict:
+        reply = self.link.get_json(path, params, idempotent=idempotent)
+        missing = [k for k in keys if k not in reply]
+        if missing:
+            raise ProtocolError(self.name, f"reply to GET {path} lacks {', '.join(missing)}: {reply!r}")
+        return reply
+
+    def identify(self) -> str:
+        r = self._get("/id", idempotent=True, keys=("device", "model", "firmware"))
+        if r["device"] != "ipjr":
+            raise ProtocolError(self.name, f"GET /id says device {r['device']!r}: this is not an IPJR (check the rig URL)")
+        return f"IPJR {r['model']} {r['firmware']}"
+
+    def limits(self) -> IpjrHardware:
+        r = self._get("/limits", idempotent=True, keys=("stroke_mm", "step_mm", "speed_mm_s", "settle_s", "max_steps"))
+        try:
+            return IpjrHardware(float(r["stroke_mm"]), float(r["step_mm"]), float(r["speed_mm_s"]),
+                                float(r["settle_s"]), int(r["max_steps"]))
+        except (TypeError, ValueError):
+            raise ProtocolError(self.name, f"reply to GET /limits has a non-number: {r!r}") from None
+
+    def volts(self) -> float:
+        v = self._get("/volts", idempotent=True, keys=("volts",))["volts"]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ProtocolError(self.name, f"reply to GET /volts: {v!r} is not a number")
+        return float(v)
+
+    def step(self, n: int) -> None:
+        r = self._get("/step", {"steps": n}, idempotent=False, keys=("accepted",))
+        if r["accepted"] is not True:
+            raise ProtocolError(self.name, f"GET /step?steps={n} was not accepted: {r!r}")
+
+    def moving(self) -> bool:
+        m = self._get("/moving", idempotent=True, keys=("moving",))["moving"]
+        if not isinstance(m, bool):
+            raise ProtocolError(self.name, f"reply to GET /moving: {m!r} is not true/false")
+        return m
+
+    def stop(self) -> None:
+        self._get("/stop", idempotent=True, keys=("stopped",))
+
+    def clear(self) -> None:
+        self._get("/clear", idempotent=True, keys=("cleared",))
+
+    def status(self) -> dict[str, Any]:
+        return self._get("/status", idempotent=True, keys=("state", "moving", "volts", "fault"))
+
+
+class Ipjr:
+    kind = "ipjr"
+
+    def __init__(self, config: IpjrConfig, wire: _Wire) -> None:
+        self.config = config
+        self.name = config.name
+        self.wire = wire
+        self.link = wire.link
+        self._hw: IpjrHardware | None = None
+        self.attach_offset_m: float | None = None
+
+    @classmethod
+    def open(cls, config: IpjrConfig, sink: CommsSink = null_sink) -> Ipjr:
+        link = config.link
+        if link.url.startswith("http://"):
+            return cls(config, _HttpWire(config.name, HttpTransport(config.name, link.url, sink,
+                                                                    reply_timeout_s=link.reply_timeout_s,
+                                                                    retries=link.retries)))
+        return cls(config, _SerialWire(config.name, LineTransport(config.name, link.url, sink,
+                                                                  reply_timeout_s=link.reply_timeout_s,
+                                                                  retries=link.retries)))
+
+    # -- device data ----------------------------------------------------------------------------
+    def identify(self) -> str:
+        return self.wire.identify()
+
+    def hardware(self) -> IpjrHardware:
+        if self._hw is None:
+            hw = self.wire.limits()
+            if hw.speed_mm_s <= 0 or hw.step_mm <= 0 or hw.max_steps < 1:
+                raise ProtocolError(self.name, f"implausible actuator data {hw}")
+            self._hw = hw
+        return self._hw
+
+    def status(self) -> dict[str, Any]:
+        return self.wire.status()
+
+    def moving(self) -> bool:
+        return self.wire.moving()
+
+    def stop(self) -> None:
+        self.wire.stop()
+
+    def clear(self) -> None:
+        self.wire.clear()
+
+    # -- measurement ----------------------------------------------------------------------------
+    def volts(self) -> float:
+        return self.wire.volts()
+
+    def extension_from_volts(self, volts: float) -> float:
+        c = self.config
+        return (volts - c.volts_retracted) / (c.volts_extended - c.volts_retracted) * c.stroke_m
+
+    def measure_extension(self) -> float:
+        """Extension (m), from the mean of `samples` potentiometer readings."""
+        n = self.config.samples
+        return self.extension_from_volts(sum(self.wire.volts() for _ in range(n)) / n)
+
+    def attach(self, measured_length_m: float) -> float:
+        """The operator attached the IPJR to a strut and measured it (the paper's initial M_L):
+        from now on strut length = offset + extension.  Returns the offset (m)."""
+        if not (math.isfinite(measured_length_m) and measured_length_m > 0):
+            raise ValueError(f"{self.name}: a measured strut length must be a positive number of m, got {measured_length_m!r}")
+        self.attach_offset_m = measured_length_m - self.measure_extension()
+        return self.attach_offset_m
+
+    def measure_length(self) -> float:
+        return self._offset() + self.measure_extension()
+
+    def _offset(self) -> float:
+        if self.attach_offset_m is None:
+            raise RuntimeError(f"{self.name}: not attached to a strut: call attach(measured_length_m) first")
+        return self.attach_offset_m
+
+    def length_limits_m(self) -> tuple[float, float]:
+        off = self._offset()
+        return off, off + self.config.stroke_m
+
+    # -- motion ---------------------------------------------------------------------------------
+    def step(self, n: int, progress: Progress | None = None, *, extension_m: float | None = None) -> None:
+        """Move n steps and wait until the actuator has stopped.  Refused before sending if |n| is
+        beyond the device's max_steps or the move would run past either end of the stroke."""
+        if isinstance(n, bool) or int(n) != n or n == 0:
+            raise ValueError(f"{self.name}: steps must be a non-zero integer, got {n!r}")
+        n = int(n)
+        hw = self.hardware()
+        if abs(n) > hw.max_steps:
+            raise OutOfRange(self.name, "step count", n, (-hw.max_steps, hw.max_steps), "steps", "device max_steps")
+        ext = self.measure_extension() if extension_m is None else extension_m
+        c = self.config
+        predicted = ext + n * c.step_m
+        if not -0.5 * c.step_m <= predicted <= c.stroke_m + 0.5 * c.step_m:
+            raise OutOfRange(self.name, "extension after the move", predicted * 1000, (0.0, c.stroke_m * 1000), "mm",
+                             f"{n} steps from {ext * 1000:.3f} mm")
+        plan = MotionPlan.of(f"{n} steps", abs(n) * hw.step_mm, hw.speed_mm_s, hw.settle_s, c.link.margin_s)
+        try:
+            self.wire.step(n)
+        except DeviceFault:
+            raise
+        except Exception as exc:
+            annotate(exc, stop_quietly(self.name, self.wire.stop))
+            raise
+
+        def poll() -> Poll:
+            return Poll(self.wire.moving(), 0.5, "actuator still moving")
+
+        wait_until_idle(self.name, plan, poll, self.wire.stop, progress)
+
+    def set_length(self, length_m: float, progress: Progress | None = None) -> LengthResult:
+        """The IPJR paper's length controller.  Requires `attach()` first."""
+        c = self.config
+        lo, hi = self.length_limits_m()
+        if not (math.isfinite(length_m) and lo <= length_m <= hi):
+            raise OutOfRange(self.name, "strut length", length_m, (lo, hi), "m",
+                             f"the actuator's {c.stroke_m * 1000:g} mm stroke from where it was attached")
+        history: list[tuple[int, float]] = []
+        measured = self.measure_length()
+        strikes = 0
+        for attempt in range(1, c.max_tries + 1):
+            err = length_m - measured
+            if abs(err) < c.tolerance_m:
+                return LengthResult(measured, err, attempt - 1, history)
+            n = int(round(err / c.step_m)) or (1 if err > 0 else -1)
+            ext = measured - self._offset()
+            try:
+                self.step(n, extension_m=ext)
+            except OutOfRange as exc:  # the controller itself would drive past an end: it is diverging
+                raise self._fail(f"controller asked for a move past the stroke end ({exc.message}); "
+                                 f"error history {self._mm(length_m, history)}", history) from None
+            if progress is not None:
+                progress(min(1.0, attempt / c.max_tries))
+            new = self.measure_length()
+            history.append((n, new))
+            moved = new - measured
+            if abs(n) >= 3 and abs(moved) < 0.25 * abs(n) * c.step_m:
+                raise self._fail(f"actuator did not move: {n} steps commanded, {moved * 1000:+.3f} mm measured "
+                                 f"(stuck?)", history)
+            if abs(length_m - new) >= abs(err):
+                strikes += 1
+                if strikes >= 2:
+                    raise self._fail(f"length controller diverging: error {self._mm(length_m, history)} "
+                                     f"(the true step is probably more than twice step_m = {c.step_m * 1000:.3f} mm)",
+                                     history)
+            else:
+                strikes = 0
+            measured = new
+        err = length_m - measured
+        if abs(err) < c.tolerance_m:
+            return LengthResult(measured, err, c.max_tries, history)
+        raise self._fail(f"length {length_m:.5f} m not reached within {c.tolerance_m * 1000:g} mm after "
+                         f"{c.max_tries} tries; error {self._mm(length_m, history)}", history)
+
+    @staticmethod
+    def _mm(target: float, history: list[tuple[int, float]]) -> str:
+        return " -> ".join(f"{(target - m) * 1000:+.2f}" for _, m in history) + " mm"
+
+    def _fail(self, message: str, history: list[tuple[int, float]]) -> LengthControlError:
+        return LengthControlError(self.name, f"{message}; {stop_quietly(self.name, self.wire.stop)}", history)
+
+    def close(self) -> None:
+        self.link.close()
+
+
+__all__ = ["Ipjr", "IpjrHardware", "LengthResult"]
