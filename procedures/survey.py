@@ -1,0 +1,207 @@
+"""Survey planning for a BORG assembly step: which turntable angles and Stewart poses see the new
+module's tags together with tags they are related to.
+
+The plan is made from the design (and the rig's kinematics), before anything moves, so that a dry
+run can check every move of a whole procedure.  Visibility is predicted, not guaranteed: a tag is
+expected in a view when its four corners project into the image with a margin, it is large enough
+to decode, it faces the camera within `max_view_angle`, and no nearer tag's outline covers it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from lab.geometry import Pose3, from_xyzrpy
+from lab.structures.borg import BorgModel
+
+
+@dataclass(frozen=True)
+class View:
+    turntable_rad: float
+    stewart_pose: tuple[float, ...]   # (x, y, z, roll, pitch, yaw) of the platform relative to home
+
+    @property
+    def label(self) -> str:
+        x, y, z, r, p, w = self.stewart_pose
+        return (f"turntable {np.degrees(self.turntable_rad):+.0f} deg, platform ({x * 1000:+.0f}, {y * 1000:+.0f}, "
+                f"{z * 1000:+.0f}) mm ({np.degrees(r):+.0f}, {np.degrees(p):+.0f}, {np.degrees(w):+.0f}) deg")
+
+
+@dataclass(frozen=True)
+class SurveyConfig:
+    margin_px: float = 25.0
+    min_side_px: float = 16.0
+    max_view_angle_rad: float = np.radians(62.0)
+    max_distance_m: float = 4.0
+    occlusion_overlap: float = 0.25       # fraction of a tag's box covered by a nearer tag's box
+    angle_offsets_rad: tuple[float, ...] = (0.0, np.radians(-25.0), np.radians(25.0))
+    stewart_poses: tuple[tuple[float, ...], ...] = (
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+        (0.0, 0.04, 0.0, 0.0, 0.0, 0.0),
+        (0.0, -0.04, 0.0, 0.0, 0.0, 0.0),
+        (0.0, 0.0, 0.03, 0.0, 0.0, 0.0),
+        (0.0, 0.0, -0.03, 0.0, 0.0, 0.0),
+        (0.0, 0.0, 0.0, 0.0, np.radians(-6.0), 0.0),
+        (0.0, 0.0, 0.0, 0.0, np.radians(6.0), 0.0),
+    )
+    views_per_step: int = 3
+    min_sightings: int = 2                # each new tag in at least this many views
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """What the planner needs of the rig: intrinsics and the camera's pose for a view."""
+
+    K: np.ndarray
+    width_px: int
+    height_px: int
+    world_T_stewart_base: Pose3
+    home_m: np.ndarray
+    platform_T_camera: Pose3
+
+    def world_T_camera(self, view: View) -> Pose3:
+        home = Pose3(from_xyzrpy([*self.home_m, 0, 0, 0]))
+        return self.world_T_stewart_base.compose(home).compose(from_xyzrpy(view.stewart_pose)).compose(
+            self.platform_T_camera)
+
+
+@dataclass
+class SurveyPlan:
+    module: str
+    views: list[View]
+    expected: list[list[int]]              # predicted visible tags per view
+    unobservable: list[int] = field(default_factory=list)   # new tags no candidate view sees
+
+
+class SurveyPlanner:
+    def __init__(self, model: BorgModel, camera: CameraModel, reachable, turntable_limits_rad: tuple[float, float],
+                 config: SurveyConfig | None = None) -> None:
+        """`reachable(stewart_pose6) -> bool` is the Stewart workspace check (IK + limits)."""
+        self.model = model
+        self.camera = camera
+        self.config = config or SurveyConfig()
+        lo, hi = turntable_limits_rad
+        views = []
+        for face in range(4):
+            for off in self.config.angle_offsets_rad:
+                a = face * np.pi / 2 + off
+                if not lo <= a <= hi:
+                    a = a - 2 * np.pi if lo <= a - 2 * np.pi <= hi else a
+                if not lo <= a <= hi:
+                    continue
+                for sp in self.config.stewart_poses:
+                    if reachable(sp):
+                        views.append(View(float(a), tuple(float(v) for v in sp)))
+        if not views:
+            raise ValueError("no candidate survey view is reachable with this rig")
+        self.candidates = views
+
+    @cached_property
+    def _tag_corners(self) -> dict[int, np.ndarray]:
+        out = {}
+        for t in self.model.tags.values():
+            h = t.size_m / 2
+            local = np.array([[-h, -h, 0, 1], [h, -h, 0, 1], [h, h, 0, 1], [-h, h, 0, 1]])
+            out[t.id] = (t.structure_T_tag.matrix() @ local.T).T[:, :3]
+        return out
+
+    def structure_T_camera(self, view: View) -> Pose3:
+        return self.model.world_T_structure(view.turntable_rad).inverse().compose(self.camera.world_T_camera(view))
+
+    def visible(self, view: View, present: Iterable[int]) -> list[int]:
+        """Tags of `present` predicted readable in `view`, nearest first."""
+        c = self.config
+        s_T_c = self.structure_T_camera(view)
+        c_T_s = s_T_c.inverse().matrix()
+        cam_pos = s_T_c.translation()
+        K = self.camera.K
+        boxes = []
+        for tid in present:
+            spec = self.model.tags[tid]
+            normal = spec.structure_T_tag.rotation().matrix()[:, 2]
+            to_cam = cam_pos - spec.structure_T_tag.translation()
+            dist = float(np.linalg.norm(to_cam))
+            if dist > c.max_distance_m or np.dot(normal, to_cam) / dist < np.cos(c.max_view_angle_rad):
+                continue
+            pc = (c_T_s[:3, :3] @ self._tag_corners[tid].T).T + c_T_s[:3, 3]
+            if np.any(pc[:, 2] < 0.1):
+                continue
+            uv = (K @ (pc / pc[:, 2:3]).T).T[:, :2]
+            if (uv[:, 0].min() < c.margin_px or uv[:, 1].min() < c.margin_px
+                    or uv[:, 0].max() > self.camera.width_px - c.margin_px
+                    or uv[:, 1].max() > self.camera.height_px - c.margin_px):
+                continue
+            sides = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1)
+            if sides.min() < c.min_side_px:
+                continue
+            boxes.append((float(pc[:, 2].mean()), tid, uv.min(axis=0), uv.max(axis=0)))
+        boxes.sort()
+        seen: list[int] = []
+        kept: list[tuple[np.ndarray, np.ndarray]] = []
+        for _, tid, lo, hi in boxes:
+            area = float(np.prod(hi - lo))
+            covered = max((float(np.prod(np.clip(np.minimum(hi, h2) - np.maximum(lo, l2), 0, None))) for l2, h2 in kept),
+                          default=0.0)
+            kept.append((lo, hi))
+            if covered <= c.occlusion_overlap * area:
+                seen.append(tid)
+        return seen
+
+    def plan(self, module: str, placed_modules: Sequence[str]) -> SurveyPlan:
+        """Views for the step that placed `module`; `placed_modules` includes it."""
+        model = self.model
+        present = set(model.turntable.tag_ids)
+        for name in placed_modules:
+            present.update(model.module_by_name[name].tags)
+        new = list(model.module_by_name[module].tags)
+        related = {t: [r for r in _related(model, t) if r in present and r not in new] for t in new}
+        sight = {v: self.visible(v, present) for v in self.candidates}
+        # requirements: each new tag seen min_sightings times; each new tag seen with a related tag;
+        # the new module's tags seen together (deployables: B and T in one view)
+        need_count = {t: self.config.min_sightings for t in new}
+        need_pair = {t: bool(related[t]) for t in new}
+        need_together = len(new) > 1
+        chosen: list[View] = []
+        while len(chosen) < self.config.views_per_step:
+            def score(v: View) -> tuple[float, float]:
+                s = set(sight[v])
+                gain = sum(1.0 for t in new if need_count[t] > 0 and t in s)
+                gain += sum(2.0 for t in new if need_pair[t] and t in s and s.intersection(related[t]))
+                if need_together and all(t in s for t in new):
+                    gain += 2.0
+                # prefer views that also see many tags (better conditioned), then small motions
+                return gain, len(s) * 0.01 - abs(v.turntable_rad) * 1e-3
+            best = max((v for v in self.candidates if v not in chosen), key=score, default=None)
+            if best is None or score(best)[0] <= 0:
+                break
+            chosen.append(best)
+            s = set(sight[best])
+            for t in new:
+                if t in s:
+                    need_count[t] -= 1
+                    if s.intersection(related[t]):
+                        need_pair[t] = False
+            if need_together and all(t in s for t in new):
+                need_together = False
+        if not chosen:  # nothing sees the new tags: still look, from the face the module is on
+            face = model.module_by_name[module].face
+            chosen = [min(self.candidates, key=lambda v: (abs(v.turntable_rad - (face - 1) * np.pi / 2),
+                                                          np.abs(v.stewart_pose).sum()))]
+        chosen.sort(key=lambda v: (v.turntable_rad, v.stewart_pose))
+        expected = [sight[v] for v in chosen]
+        seen_new = set().union(*map(set, expected)) if expected else set()
+        return SurveyPlan(module, chosen, expected, [t for t in new if t not in seen_new])
+
+
+def _related(model: BorgModel, tag: int) -> list[int]:
+    out = []
+    for r in model.relations:
+        if r.a == tag:
+            out.append(r.b)
+        elif r.b == tag:
+            out.append(r.a)
+    return out
