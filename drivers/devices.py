@@ -125,7 +125,7 @@ def _check_one(dev: Any) -> str:
         ident = dev.identify()
         hw = dev.hardware()
         st = dev.status()
-        pose = to_xyzrpy(dev.pose())
+        pose = np.round(to_xyzrpy(dev.pose()), 6) + 0.0  # no '-0.0000'
         return (f"{ident}; {st.state.lower()}; platform at x {pose[0]:+.4f} y {pose[1]:+.4f} z {pose[2]:+.4f} m, "
                 f"roll {np.degrees(pose[3]):+.2f} pitch {np.degrees(pose[4]):+.2f} yaw {np.degrees(pose[5]):+.2f} deg "
                 f"from home; legs [{hw.min_mm:g}, {hw.max_mm:g}] mm at {hw.speed_mm_s:g} mm/s; fault {st.fault}")

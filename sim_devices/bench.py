@@ -1,0 +1,148 @@
+"""Start the whole simulated bench of a rig, in this process.
+
+    with start_sim_bench(load_rig(), scenario) as bench:      # free ports by default
+        devices = drivers.connect(bench.rig, sink)             # bench.rig: the rig with the served URLs
+        bench.world.borg.place("1P")                           # act as the operator
+        bench.inject("turntable", "timeout", after_commands=3) # fault injection for tests
+
+Serial devices listen on loopback TCP (`socket://127.0.0.1:PORT`) and, with `pty=True`, also on a
+pseudo-terminal; IPJRs over HTTP and the camera are real HTTP servers on 127.0.0.1.  `lab sim`
+runs this on the rig's own ports until Ctrl-C."""
+
+from __future__ import annotations
+
+import urllib.parse
+from dataclasses import dataclass, field
+
+from lab.config import Rig, load_rig
+from lab.errors import UserError
+from lab.scenario import Scenario
+from sim_devices.camera import camera_routes
+from sim_devices.faults import FaultInjector
+from sim_devices.http_server import HttpDeviceServer
+from sim_devices.ipjr import IpjrSerialSim, ipjr_routes
+from sim_devices.line_server import LineDevice, LineServer
+from sim_devices.stewart import StewartSim
+from sim_devices.turntable import TurntableSim
+from sim_devices.world import SimWorld
+
+
+@dataclass
+class SimBench:
+    rig: Rig                                   # the rig, with the URLs actually served
+    world: SimWorld
+    urls: dict[str, str] = field(default_factory=dict)
+    pty_paths: dict[str, str] = field(default_factory=dict)
+    faults: dict[str, FaultInjector] = field(default_factory=dict)
+    servers: dict[str, LineServer | HttpDeviceServer] = field(default_factory=dict)
+    devices: dict[str, object] = field(default_factory=dict)   # the simulators, by rig name
+
+    def inject(self, device: str, kind: str, after_commands: int = 0, count: int = 1) -> None:
+        """Arm a fault on a device (sim_devices/faults.py says what each kind does)."""
+        if device not in self.faults:
+            raise KeyError(f"no simulated device named {device!r} (have: {', '.join(self.faults)})")
+        self.faults[device].arm(kind, after_commands, count)
+
+    def clear_faults(self, device: str | None = None) -> None:
+        for name, f in self.faults.items():
+            if device is None or name == device:
+                f.clear()
+
+    def drop_connections(self, device: str) -> None:
+        """Close every TCP connection to a serial device (a cable pulled while idle)."""
+        server = self.servers[device]
+        if isinstance(server, LineServer):
+            server.kick_clients()
+
+    def stop(self) -> None:
+        for server in self.servers.values():
+            server.stop()
+        self.servers.clear()
+
+    def __enter__(self) -> SimBench:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def _endpoint(name: str, url: str, ephemeral: bool, http: bool) -> tuple[str, int, str]:
+    """(host, port to bind, path) from a device URL of a simulated rig."""
+    parts = urllib.parse.urlsplit(url)
+    want = "http" if http else "socket"
+    if parts.scheme != want or not parts.hostname:
+        example = "http://127.0.0.1:PORT" if http else "socket://127.0.0.1:PORT"
+        raise UserError(f"simulated device {name}: url {url!r} must be {example} (a simulator listens on loopback)")
+    if parts.port is None and not ephemeral:
+        raise UserError(f"simulated device {name}: url {url!r} needs a port")
+    return parts.hostname, 0 if ephemeral else int(parts.port or 0), parts.path
+
+
+def start_sim_bench(rig: Rig | None = None, scenario: Scenario | None = None, *, speedup: float | None = None,
+                    ephemeral_ports: bool = True, pty: bool = False, place_all: bool = False) -> SimBench:
+    """Start a simulator for every device of a simulated rig (default: the packaged sim rig).
+
+    ephemeral_ports: listen on free ports (tests, procedures) instead of the rig's own (lab sim).
+    pty: also serve each serial device on a pseudo-terminal.  place_all: start with every BORG
+    module placed (lab sim), instead of an empty turntable (a procedure places them)."""
+    rig = rig or load_rig(None)
+    world = SimWorld(rig, scenario, speedup=speedup)
+    bench = SimBench(rig, world)
+    sim = rig.sim
+    assert sim is not None
+    try:
+        for name, kind, url in rig.devices():
+            http = url.startswith("http")
+            host, port, path = _endpoint(name, url, ephemeral_ports, http)
+            faults = FaultInjector(name, http=http, seed=world.seed)
+            bench.faults[name] = faults
+            line_device: LineDevice | None = None
+            if kind == "turntable":
+                assert world.turntable is not None
+                line_device = TurntableSim(world.turntable, sim.turntable["min_deg"], sim.turntable["max_deg"], name)
+            elif kind == "stewart":
+                assert world.stewart_legs is not None and rig.stewart is not None
+                g = rig.stewart.geometry
+                margin = sim.stewart["stroke_margin_mm"]
+                line_device = StewartSim(world.stewart_legs, g, g.leg_min_m * 1000 - margin, g.leg_max_m * 1000 + margin,
+                                         name)
+            elif kind == "ipjr" and not http:
+                line_device = IpjrSerialSim(world.ipjrs[name])
+            if line_device is not None:
+                if http:
+                    raise UserError(f"simulated device {name}: a {kind} speaks the serial protocol; use a socket:// URL")
+                server: LineServer | HttpDeviceServer = LineServer(line_device, faults, host, port, pty=pty).start()
+                bench.devices[name] = line_device
+                bench.urls[name] = server.url
+                if server.pty_path:
+                    bench.pty_paths[name] = server.pty_path
+            elif kind == "ipjr":
+                act = world.ipjrs[name]
+                server = HttpDeviceServer(name, ipjr_routes(act), faults, is_moving=act.moving,
+                                          motion_paths=frozenset({"/step"}), on_link_lost=act.stop,
+                                          host=host, port=port).start()
+                bench.devices[name] = act
+                bench.urls[name] = server.url
+            elif kind == "camera":
+                if not path or path == "/":
+                    raise UserError(f"simulated camera {name}: url {url!r} needs a snapshot path, e.g. /frame.png")
+                server = HttpDeviceServer(name, camera_routes(world, name, path), faults, host=host, port=port).start()
+                bench.urls[name] = server.url + path
+            else:
+                raise UserError(f"no simulator for device {name} of kind {kind}")
+            bench.servers[name] = server
+        for i, f in enumerate(world.scenario.device_faults):
+            if f.device not in bench.faults:
+                raise UserError(f"scenario {world.scenario.source}: device.fault[{i}].device: no device "
+                                f"{f.device!r} in rig {rig.name!r} (have: {', '.join(bench.faults)})")
+            try:
+                bench.faults[f.device].arm(f.kind, f.after_commands, f.count)
+            except ValueError as exc:
+                raise UserError(f"scenario {world.scenario.source}: device.fault[{i}]: {exc}") from None
+    except BaseException:
+        bench.stop()
+        raise
+    if place_all and world.borg is not None:
+        world.borg.place_all()
+    bench.rig = rig.with_urls(bench.urls)
+    return bench

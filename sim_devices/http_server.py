@@ -1,0 +1,124 @@
+"""A small GET-only HTTP server for the simulated Raspberry Pi and camera (real HTTP on
+127.0.0.1, `http.server.ThreadingHTTPServer`), with the faults of sim_devices/faults.py.
+
+A route is `path -> handler(query: dict[str, str], stuck: bool) -> (status, content_type, body,
+headers)` (`stuck`: an injected stuck-actuator fault applies to this request); a handler
+raises `Refuse` for a protocol error, which becomes the JSON error of docs/protocols.md §5."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+import urllib.parse
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any, Callable
+
+from sim_devices.faults import FaultInjector
+from sim_devices.line_server import E_INTERNAL, E_UNKNOWN, Refuse
+
+Reply = tuple[int, str, bytes, dict[str, str]]
+Route = Callable[[dict[str, str], bool], Reply]   # (query, stuck) -> reply
+
+HTTP_STATUS = {10: 404, 11: 400, 12: 400, 20: 400, 30: 409, 31: 409, 40: 409, 50: 500}
+HUNG_REQUEST_S = 10.0      # how long a `timeout` fault keeps a request open before dropping it
+
+
+def json_reply(obj: dict[str, Any], status: int = 200, headers: dict[str, str] | None = None) -> Reply:
+    return status, "application/json", json.dumps(obj).encode(), headers or {}
+
+
+def error_reply(code: int, text: str) -> Reply:
+    return json_reply({"error": {"code": code, "text": text}}, HTTP_STATUS.get(code, 500))
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+    block_on_close = False
+    allow_reuse_address = True
+
+
+class HttpDeviceServer:
+    def __init__(self, name: str, routes: dict[str, Route], faults: FaultInjector, *,
+                 is_moving: Callable[[], bool] = lambda: False, motion_paths: frozenset[str] = frozenset(),
+                 on_link_lost: Callable[[], None] = lambda: None, host: str = "127.0.0.1", port: int = 0) -> None:
+        self.name = name
+        self.routes = routes
+        self.faults = faults
+        self._stop = threading.Event()
+        outer = self
+
+        class Handler(BaseHTTPRequestHandler):
+            server_version = "lab-sim/1.0"
+            protocol_version = "HTTP/1.0"
+
+            def log_message(self, fmt: str, *args: Any) -> None:  # quiet: the driver logs comms
+                pass
+
+            def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
+                parts = urllib.parse.urlsplit(self.path)
+                query = dict(urllib.parse.parse_qsl(parts.query, keep_blank_values=True))
+                fault = outer.faults.on_request(self.path, is_moving(), parts.path in motion_paths)
+                if fault == "timeout":
+                    outer._stop.wait(HUNG_REQUEST_S)
+                    self.close_connection = True
+                    return
+                if fault == "disconnect":
+                    on_link_lost()
+                    self.close_connection = True
+                    return
+                if fault == "http_500":
+                    return self._send(error_reply(E_INTERNAL, "injected fault: internal server error"))
+                route = outer.routes.get(parts.path)
+                if route is None:
+                    reply = error_reply(E_UNKNOWN, f"unknown path {parts.path!r} (known: {', '.join(sorted(outer.routes))})")
+                else:
+                    try:
+                        reply = route(query, fault == "stuck")
+                    except Refuse as r:
+                        reply = error_reply(r.code, r.text)
+                    except Exception as exc:
+                        reply = error_reply(E_INTERNAL, f"internal error: {type(exc).__name__}: {exc}")
+                if fault == "garbled":
+                    status, ctype, body, headers = reply
+                    reply = (status, ctype, outer.faults.garble(body), headers)
+                self._send(reply)
+
+            def _send(self, reply: Reply) -> None:
+                status, ctype, body, headers = reply
+                self.send_response(status)
+                self.send_header("Content-Type", ctype)
+                self.send_header("Content-Length", str(len(body)))
+                for k, v in headers.items():
+                    self.send_header(k, v)
+                self.end_headers()
+                self.wfile.write(body)
+
+        try:
+            self._httpd = _Server((host, port), Handler)
+        except OSError as exc:
+            raise OSError(exc.errno, f"{name}: cannot listen on {host}:{port}: {exc.strerror} "
+                                     f"(is another `lab sim` running?)") from None
+        self.host, self.port = self._httpd.server_address[:2]
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.port}"
+
+    def start(self) -> HttpDeviceServer:
+        self._thread = threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.1},
+                                        name=f"{self.name}-http", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._httpd.shutdown()
+        self._httpd.server_close()
+        if self._thread:
+            self._thread.join(timeout=1.0)
+
+
+def now_s() -> float:
+    return time.time()

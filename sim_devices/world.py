@@ -1,0 +1,283 @@
+"""The simulated world: the design structure plus what really happened, seeded.
+
+`SimWorld` holds every physical truth the device simulators act on and the camera sees:
+- the turntable axis (rad) and the Stewart platform's six legs (m), moved by their controllers;
+- the true camera pose, world_T_camera = world_T_stewart_base · base_T_platform(true legs) ·
+  platform_T_camera (the mounting poses are the rig file's: no mounting error);
+- the BORG structure (`BorgTruth`): which modules are placed so far (only their tags are seen),
+  per-module pose errors, partial deployments, displaced tags;
+- each IPJR's actuator (`sim_devices.ipjr.IpjrActuator`), and the strut it is attached to.
+
+Procedures use it in simulation to act as the operator (place a module, attach an IPJR) and to
+score their estimates against the truth.  It never reads anything the drivers compute.
+
+Seeding: every random part draws from its own generator, `default_rng([seed, k])`, so adding one
+does not change the others' numbers."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+
+from lab.config import Rig
+from lab.errors import UserError
+from lab.geometry import Pose3, Rot3, to_xyzrpy
+from lab.scenario import BorgFault, Scenario
+from lab.structures.borg import BorgModel, build_borg
+from sim_devices.ipjr import IpjrActuator
+from sim_devices.motion import Axis
+from sim_devices.stewart import platform_pose
+
+# Independent random streams (the k in default_rng([seed, k])).
+_STREAM_CAMERA, _STREAM_IPJR = 1, 100
+
+
+def _correction(about: np.ndarray, offset_m: Iterable[float], rotation_rad: Iterable[float]) -> Pose3:
+    """A rigid correction in structure axes: rotate by roll-pitch-yaw about the point `about`, then
+    translate by `offset_m`.  Applied on the left of a structure_T_x pose."""
+    R = Rot3.RzRyRx(*[float(a) for a in rotation_rad])
+    p = np.asarray(about, dtype=float)
+    return Pose3(R, p + np.asarray(list(offset_m), dtype=float) - R.matrix() @ p)
+
+
+class BorgTruth:
+    """The BORG truss as built so far."""
+
+    def __init__(self, model: BorgModel) -> None:
+        self.model = model
+        self.placed: list[str] = []
+        self._module_fix: dict[str, Pose3] = {}
+        self._height: dict[str, float] = {}
+        self._tag_fix: dict[int, Pose3] = {}
+        self._lock = threading.RLock()
+
+    # -- what the operator does ---------------------------------------------------------------------
+    def _module(self, name: str):
+        try:
+            return self.model.module_by_name[name]
+        except KeyError:
+            raise UserError(f"no BORG module named {name!r} (known: {', '.join(m.name for m in self.model.modules)})") from None
+
+    def place(self, name: str) -> None:
+        """The operator places (and deploys) a module: its tags become visible."""
+        self._module(name)
+        with self._lock:
+            if name not in self.placed:
+                self.placed.append(name)
+
+    def place_all(self) -> None:
+        for m in self.model.modules:
+            self.place(m.name)
+
+    def remove(self, name: str) -> None:
+        with self._lock:
+            if name in self.placed:
+                self.placed.remove(name)
+
+    def is_placed(self, name: str) -> bool:
+        return name in self.placed
+
+    # -- what went wrong ------------------------------------------------------------------------------
+    def set_module_offset(self, name: str, offset_m: Iterable[float] = (0, 0, 0),
+                          rotation_rad: Iterable[float] = (0, 0, 0)) -> None:
+        """The whole module sits off its design pose: translated by offset_m (structure axes) and
+        rotated by roll-pitch-yaw (structure axes) about its anchor point."""
+        m = self._module(name)
+        self._module_fix[name] = _correction(m.structure_T_module.translation(), offset_m, rotation_rad)
+
+    def set_deployed_height(self, name: str, height_m: float | None) -> None:
+        """A deployable stopped short: its top (T) tag sits height_m above its bottom (B) tag
+        instead of the node spacing.  None restores full deployment."""
+        m = self._module(name)
+        if m.kind != "deployable":
+            raise UserError(f"module {name} is a {m.kind}, not a deployable: it has no deployed height")
+        if height_m is None:
+            self._height.pop(name, None)
+            return
+        if not 0.0 < height_m <= self.model.spacing_m:
+            raise UserError(f"deployed height of {name} must be in (0, {self.model.spacing_m}] m, got {height_m} m")
+        self._height[name] = float(height_m)
+
+    def displace_tag(self, tag: int, offset_m: Iterable[float] = (0, 0, 0),
+                     rotation_rad: Iterable[float] = (0, 0, 0)) -> None:
+        """A tag knocked off its spot: moved by offset_m (structure axes), rotated about its centre."""
+        if tag not in self.model.tags:
+            raise UserError(f"no tag {tag} on this BORG structure (ids 0..{max(self.model.tags)})")
+        about = self.model.tags[tag].structure_T_tag.translation()
+        self._tag_fix[tag] = _correction(about, offset_m, rotation_rad)
+
+    def apply(self, faults: Iterable[BorgFault]) -> None:
+        for f in faults:
+            if f.kind == "partial_deploy":
+                assert f.module is not None
+                self.set_deployed_height(f.module, f.height_m)
+            elif f.kind == "tag_displaced":
+                assert f.tag is not None
+                self.displace_tag(f.tag, f.offset_m, f.rotation_rad)
+            elif f.kind == "module_offset":
+                assert f.module is not None
+                self.set_module_offset(f.module, f.offset_m, f.rotation_rad)
+            else:
+                raise UserError(f"unknown BORG fault kind {f.kind!r}")
+
+    # -- the truth ------------------------------------------------------------------------------------
+    def deployed_height_m(self, name: str) -> float:
+        return self._height.get(name, self.model.spacing_m)
+
+    def structure_T_module(self, name: str) -> Pose3:
+        m = self._module(name)
+        fix = self._module_fix.get(name, Pose3())
+        return fix.compose(m.structure_T_module)
+
+    def structure_T_tag(self, tag: int) -> Pose3:
+        spec = self.model.tags[tag]
+        T = spec.structure_T_tag
+        if spec.module != "turntable":
+            m = self.model.module_by_name[spec.module]
+            if m.kind == "deployable" and len(m.tags) == 2 and tag == m.tags[1] and spec.module in self._height:
+                drop = self.model.spacing_m - self._height[spec.module]
+                T = Pose3(T.rotation(), T.translation() - np.array([0.0, 0.0, drop]))
+            T = self._module_fix.get(spec.module, Pose3()).compose(T)
+        if tag in self._tag_fix:
+            T = self._tag_fix[tag].compose(T)
+        return T
+
+    def visible_tag_ids(self) -> list[int]:
+        """Tags that exist right now: the turntable's and those of placed modules."""
+        with self._lock:
+            ids = list(self.model.turntable.tag_ids)
+            for name in self.placed:
+                ids.extend(self.model.module_by_name[name].tags)
+        return ids
+
+
+@dataclass(frozen=True)
+class TrueCamera:
+    K: np.ndarray
+    dist: np.ndarray
+    width_px: int
+    height_px: int
+    pixel_noise: float
+    blur_px: float
+
+
+class SimWorld:
+    def __init__(self, rig: Rig, scenario: Scenario | None = None, *, speedup: float | None = None) -> None:
+        if rig.sim is None:
+            raise UserError(f"rig {rig.name!r} has no [sim] table: it describes real hardware, not a simulation")
+        self.rig = rig
+        self.scenario = scenario or Scenario(seed=rig.sim.seed)
+        self.seed = self.scenario.seed
+        self.speedup = float(speedup if speedup is not None else rig.sim.speedup)
+        if not self.speedup > 0:
+            raise UserError(f"speed-up must be positive, got {self.speedup}")
+        sim = rig.sim
+        self._lock = threading.RLock()
+        self.started_s = time.time()
+
+        # -- the turntable and the structure on it
+        self.turntable: Axis | None = None
+        if rig.turntable:
+            t = sim.turntable
+            self.turntable = Axis(0.0, math.radians(t["speed_deg_s"]) * self.speedup, t["settle_s"] / self.speedup)
+        self.borg: BorgTruth | None = None
+        if rig.turntable or rig.camera:
+            self.borg = BorgTruth(build_borg(sim.borg_n))
+            self.borg.apply(self.scenario.borg_faults)
+
+        # -- the Stewart platform
+        self.stewart_legs: Axis | None = None
+        self._last_platform = np.zeros(6)
+        if rig.stewart:
+            g = rig.stewart.geometry
+            home_legs = np.linalg.norm(g.home_m + g.platform_joints_m - g.base_joints_m, axis=1)
+            s = sim.stewart
+            self.stewart_legs = Axis(home_legs, s["speed_mm_s"] / 1000.0 * self.speedup, s["settle_s"] / self.speedup)
+
+        # -- the camera
+        self.camera: TrueCamera | None = None
+        self._camera_rng = np.random.default_rng([self.seed, _STREAM_CAMERA])
+        if rig.camera:
+            c = sim.camera
+            K = np.array([[c["fx_px"], 0.0, c["cx_px"]], [0.0, c["fy_px"], c["cy_px"]], [0.0, 0.0, 1.0]])
+            noise = self.scenario.camera if scenario is not None else None
+            self.camera = TrueCamera(K, np.asarray(c["dist"], dtype=float), int(c["width_px"]), int(c["height_px"]),
+                                     noise.pixel_noise if noise else c["pixel_noise"],
+                                     noise.blur_px if noise else c["blur_px"])
+
+        # -- the IPJRs
+        self.ipjrs: dict[str, IpjrActuator] = {}
+        p = sim.ipjr
+        for k, (name, cfg) in enumerate(rig.ipjrs.items()):
+            rng = np.random.default_rng([self.seed, _STREAM_IPJR + k])
+            axis = Axis(min(p["start_extension_m"], cfg.stroke_m), p["speed_mm_s"] / 1000.0 * self.speedup,
+                        p["settle_s"] / self.speedup)
+            self.ipjrs[name] = IpjrActuator(
+                name, stroke_m=cfg.stroke_m, step_m=cfg.step_m, axis=axis,
+                volts_retracted=cfg.volts_retracted + rng.normal(0.0, p["calibration_sigma_v"]),
+                volts_extended=cfg.volts_extended + rng.normal(0.0, p["calibration_sigma_v"]),
+                volts_noise_v=p["volts_noise_v"], step_scale=1.0 + rng.normal(0.0, p["step_scale_sigma"]),
+                move_sigma_m=p["move_sigma_m"], rng=rng)
+
+    # -- truth queries ------------------------------------------------------------------------------
+    def turntable_angle_rad(self) -> float:
+        return float(self.turntable.position()) if self.turntable else 0.0
+
+    def home_T_platform(self) -> Pose3:
+        """The platform's true pose relative to home, from the true leg lengths."""
+        if self.stewart_legs is None or self.rig.stewart is None:
+            return Pose3()
+        legs = np.asarray(self.stewart_legs.position())
+        with self._lock:
+            pose = platform_pose(self.rig.stewart.geometry, legs, self._last_platform)
+            self._last_platform = to_xyzrpy(pose)
+        return pose
+
+    def world_T_camera(self) -> Pose3:
+        if self.rig.camera is None:
+            raise UserError(f"rig {self.rig.name!r} has no camera")
+        platform_T_camera = self.rig.camera.platform_T_camera
+        if self.rig.stewart is None:
+            return platform_T_camera  # a fixed camera: its mount pose is in the world frame
+        g = self.rig.stewart.geometry
+        hp = self.home_T_platform()
+        base_T_platform = Pose3(hp.rotation(), g.home_m + hp.translation())
+        return self.rig.stewart.world_T_base.compose(base_T_platform).compose(platform_T_camera)
+
+    def world_T_structure(self) -> Pose3:
+        assert self.borg is not None
+        return self.borg.model.world_T_structure(self.turntable_angle_rad())
+
+    def world_T_tag(self, tag: int) -> Pose3:
+        assert self.borg is not None
+        return self.world_T_structure().compose(self.borg.structure_T_tag(tag))
+
+    def tags_in_view(self) -> list[tuple[int, float, Pose3]]:
+        """(id, size, camera_T_tag) of every tag that exists now (the renderer culls the rest)."""
+        if self.borg is None:
+            return []
+        camera_T_world = self.world_T_camera().inverse()
+        world_T_structure = self.world_T_structure()
+        out = []
+        for tid in self.borg.visible_tag_ids():
+            spec = self.borg.model.tags[tid]
+            out.append((tid, spec.size_m, camera_T_world.compose(world_T_structure).compose(self.borg.structure_T_tag(tid))))
+        return out
+
+    def render(self) -> np.ndarray:
+        """The image the camera sees now (BGR uint8)."""
+        from sim_devices.render import render_tags
+
+        cam = self.camera
+        if cam is None:
+            raise UserError(f"rig {self.rig.name!r} has no camera")
+        with self._lock:
+            rng = np.random.default_rng(self._camera_rng.integers(2**63))
+        return render_tags(cam.K, cam.dist, cam.width_px, cam.height_px, self.tags_in_view(),
+                           blur_sigma_px=cam.blur_px, noise_sigma=cam.pixel_noise, rng=rng)
+
