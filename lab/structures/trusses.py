@@ -43,8 +43,8 @@ __all__ = [
     "TELESCOPE_VERTEX_OFFSET_M",
 ]
 
-TRUSS_FORMS = ("tetrahelix:N[:edge_m]  (N >= 4, e.g. tetrahelix:20 or tetrahelix:20:0.5)",
-               "telescope:N            (4 <= N <= 400, e.g. telescope:10, telescope:45, telescope:84)")
+TRUSS_FORMS = ("tetrahelix:N[:edge_m] (N >= 4, e.g. tetrahelix:20 or tetrahelix:20:0.5)",
+               "telescope:N (4 <= N <= 400, e.g. telescope:10, telescope:45, telescope:84)")
 
 # Telescope design constants (IPJR paper §6.3: "edge lengths on the order of 2 m").  The focal
 # length and off-axis offset are our choice: the paper says the surface is a paraboloid that is
