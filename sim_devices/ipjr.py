@@ -97,8 +97,8 @@ class IpjrActuator:
         self.fault = "none"
 
     def limits(self) -> dict[str, float]:
-        return {"stroke_mm": self.stroke_m * 1000, "step_mm": self.step_m * 1000,
-                "speed_mm_s": self.axis.speed * 1000, "settle_s": self.axis.settle_s,
+        return {"stroke_mm": round(self.stroke_m * 1000, 6), "step_mm": round(self.step_m * 1000, 6),
+                "speed_mm_s": round(self.axis.speed * 1000, 6), "settle_s": round(self.axis.settle_s, 6),
                 "max_steps": self.max_steps, "vref_volts": VREF_V}
 
     def state(self) -> str:
