@@ -37,7 +37,7 @@ class ScriptedLineDevice:
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self._sock.bind(("127.0.0.1", 0))
         self._sock.listen(4)
-        self._sock.settimeout(0.1)
+        self._sock.settimeout(0.02)
         self.url = f"socket://127.0.0.1:{self._sock.getsockname()[1]}"
         self._thread = threading.Thread(target=self._serve, daemon=True)
 
@@ -49,7 +49,7 @@ class ScriptedLineDevice:
                 continue
             except OSError:
                 return
-            conn.settimeout(0.1)
+            conn.settimeout(0.02)
             buf = b""
             with conn:
                 while not self._stop.is_set():
@@ -130,7 +130,7 @@ class ScriptedHttpDevice:
         self._httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
         self._httpd.daemon_threads = True
         self.url = f"http://127.0.0.1:{self._httpd.server_address[1]}"
-        self._thread = threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+        self._thread = threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True)
 
     def __enter__(self) -> ScriptedHttpDevice:
         self._thread.start()

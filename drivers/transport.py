@@ -157,16 +157,18 @@ class LineTransport(Transport):
     def close(self) -> None:
         with self.lock:
             if self._port is not None:
-                try:
-                    self._port.close()
-                except Exception:
-                    pass
+                _close_port(self._port)
                 self._port = None
                 self.event("closed")
 
     @property
     def is_open(self) -> bool:
         return self._port is not None
+
+    def __del__(self) -> None:
+        port = getattr(self, "_port", None)
+        if port is not None:
+            _close_port(port)
 
     def request(self, line: str, *, idempotent: bool | None = None) -> str:
         """Send one request line, return the reply's payload (the text after `OK `).
@@ -208,6 +210,25 @@ class LineTransport(Transport):
             got = f" (got {raw!r})" if raw else ""
             raise DeviceTimeout(self.device, f"no reply to {line!r} within {self.reply_timeout_s:g} s{got}")
         return parse_reply(self.device, line, raw)
+
+
+def _close_port(port: serial.SerialBase) -> None:
+    sock = getattr(port, "_socket", None)
+    if isinstance(sock, socket.socket):
+        # pyserial's socket:// close() sleeps 0.3 s "in case of quick reconnects"; a reconnect
+        # here is already paced by RECONNECT_BACKOFF_S, so close the socket directly.
+        try:
+            sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        sock.close()
+        port._socket = None  # type: ignore[attr-defined]
+        port.is_open = False
+        return
+    try:
+        port.close()
+    except Exception:
+        pass
 
 
 def _why(exc: BaseException) -> str:

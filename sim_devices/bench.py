@@ -11,6 +11,7 @@ runs this on the rig's own ports until Ctrl-C."""
 
 from __future__ import annotations
 
+import threading
 import urllib.parse
 from dataclasses import dataclass, field
 
@@ -55,8 +56,12 @@ class SimBench:
             server.kick_clients()
 
     def stop(self) -> None:
-        for server in self.servers.values():
-            server.stop()
+        """Stop every server (in parallel: each waits out its own poll interval)."""
+        threads = [threading.Thread(target=server.stop, daemon=True) for server in self.servers.values()]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=5.0)
         self.servers.clear()
 
     def __enter__(self) -> SimBench:

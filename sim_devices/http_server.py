@@ -107,7 +107,7 @@ class HttpDeviceServer:
         return f"http://{self.host}:{self.port}"
 
     def start(self) -> HttpDeviceServer:
-        self._thread = threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.1},
+        self._thread = threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.05},
                                         name=f"{self.name}-http", daemon=True)
         self._thread.start()
         return self

@@ -119,7 +119,7 @@ class LineServer:
             raise OSError(exc.errno, f"{device.name}: cannot listen on {host}:{port}: {exc.strerror} "
                                      f"(is another `lab sim` running?)") from None
         self._sock.listen(8)
-        self._sock.settimeout(0.2)
+        self._sock.settimeout(0.05)
         self.host, self.port = self._sock.getsockname()[:2]
         self._clients: set[socket.socket] = set()
         self._threads: list[threading.Thread] = []
@@ -221,7 +221,7 @@ class LineServer:
                 continue
             except OSError:
                 return
-            conn.settimeout(0.2)
+            conn.settimeout(0.05)
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self._clients.add(conn)
             self._spawn(self._client_loop, f"{self.device.name}-client", conn)
@@ -256,7 +256,7 @@ class LineServer:
         buf, overflow = bytearray(), [False]
         while not self._stop.is_set():
             try:
-                ready, _, _ = select.select([master], [], [], 0.2)
+                ready, _, _ = select.select([master], [], [], 0.05)
                 if not ready:
                     continue
                 chunk = os.read(master, 4096)
