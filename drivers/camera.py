@@ -242,8 +242,13 @@ class Camera:
         return f"OpenCV capture {self.url}"
 
     def grab(self) -> Frame:
-        """One frame of the current view, checked against the calibration's image size."""
-        img, t, seq = self._open().read()
+        """One frame of the current view, checked against the calibration's image size.  A frame
+        that does not decode is fetched once more (a snapshot GET is safe to repeat)."""
+        try:
+            img, t, seq = self._open().read()
+        except ProtocolError as exc:
+            self._sink(CommsRecord(self.name, self.url, "event", b"", time.time(), f"retry after: {exc.message}"))
+            img, t, seq = self._open().read()
         self._seq += 1
         if self.intrinsics and (img.shape[1], img.shape[0]) != (self.intrinsics.width_px, self.intrinsics.height_px):
             raise RigMismatch(self.name, f"frame is {img.shape[1]}x{img.shape[0]} px but the calibration "

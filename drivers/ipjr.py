@@ -12,10 +12,11 @@ Lengths:
   strut (the paper's initial M_L) and call `attach(measured_length_m)`, which fixes the offset.
 
 `set_length(L)` is the paper's controller: measure M, move round((L − M) / d_step) steps,
-re-measure, until |L − M| < tolerance (0.5 mm).  It refuses a target outside the stroke before
-moving, and stops with `LengthControlError` when the error does not shrink twice in a row
-(divergence: the true step is more than twice the assumed one, or the actuator is stuck) or after
-`max_tries` cycles."""
+re-measure, until |L − M| < tolerance (0.5 mm).  (The paper writes "d_step(L − M) steps"; the
+step count is the length error divided by the step length.)  It refuses a target outside the
+stroke before moving, and stops with `LengthControlError` when the error does not shrink twice in
+a row (divergence: the true step is more than twice the assumed one; or the actuator is stuck)
+or after `max_tries` cycles."""
 
 from __future__ import annotations
 
@@ -23,8 +24,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from drivers.errors import DeviceFault, LengthControlError, OutOfRange, ProtocolError
-from drivers.motion import MotionPlan, Poll, Progress, annotate, stop_quietly, wait_until_idle
+from drivers.errors import LengthControlError, OutOfRange, ProtocolError
+from drivers.motion import MotionPlan, Poll, Progress, send_motion, stop_quietly, wait_until_idle
 from drivers.transport import HttpTransport, LineTransport, Transport
 from drivers.wire import parse_fields, parse_float
 from lab.comms import CommsSink, null_sink
@@ -255,13 +256,7 @@ class Ipjr:
             raise OutOfRange(self.name, "extension after the move", predicted * 1000, (0.0, c.stroke_m * 1000), "mm",
                              f"{n} steps from {ext * 1000:.3f} mm")
         plan = MotionPlan.of(f"{n} steps", abs(n) * hw.step_mm, hw.speed_mm_s, hw.settle_s, c.link.margin_s)
-        try:
-            self.wire.step(n)
-        except DeviceFault:
-            raise
-        except Exception as exc:
-            annotate(exc, stop_quietly(self.name, self.wire.stop))
-            raise
+        send_motion(self.name, lambda: self.wire.step(n), self.wire.stop)
 
         def poll() -> Poll:
             return Poll(self.wire.moving(), 0.5, "actuator still moving")
@@ -278,6 +273,7 @@ class Ipjr:
         history: list[tuple[int, float]] = []
         measured = self.measure_length()
         strikes = 0
+        moves: list[float] = []
         for attempt in range(1, c.max_tries + 1):
             err = length_m - measured
             if abs(err) < c.tolerance_m:
@@ -293,18 +289,16 @@ class Ipjr:
                 progress(min(1.0, attempt / c.max_tries))
             new = self.measure_length()
             history.append((n, new))
-            moved = new - measured
-            if abs(n) >= 3 and abs(moved) < 0.25 * abs(n) * c.step_m:
-                raise self._fail(f"actuator did not move: {n} steps commanded, {moved * 1000:+.3f} mm measured "
-                                 f"(stuck?)", history)
-            if abs(length_m - new) >= abs(err):
-                strikes += 1
-                if strikes >= 2:
-                    raise self._fail(f"length controller diverging: error {self._mm(length_m, history)} "
-                                     f"(the true step is probably more than twice step_m = {c.step_m * 1000:.3f} mm)",
-                                     history)
-            else:
-                strikes = 0
+            moves.append(abs(new - measured) / (abs(n) * c.step_m))   # fraction of the commanded move
+            strikes = strikes + 1 if abs(length_m - new) >= abs(err) else 0
+            if strikes >= 2:   # twice in a row no closer: stop before it gets worse
+                if max(moves[-2:]) < 0.25:
+                    raise self._fail(f"actuator did not move: {history[-1][0]} steps commanded, "
+                                     f"{(new - measured) * 1000:+.3f} mm measured (stuck?); error "
+                                     f"{self._mm(length_m, history)}", history)
+                raise self._fail(f"length controller diverging: error {self._mm(length_m, history)} "
+                                 f"(the true step is probably more than twice step_m = {c.step_m * 1000:.3f} mm)",
+                                 history)
             measured = new
         err = length_m - measured
         if abs(err) < c.tolerance_m:

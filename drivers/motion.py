@@ -8,7 +8,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from drivers.errors import DeviceError, DeviceTimeout
+from drivers.errors import DeviceError, DeviceFault, DeviceTimeout
 
 Progress = Callable[[float], None]   # fraction done, 0..1
 
@@ -50,6 +50,23 @@ def stop_quietly(device: str, stop: Callable[[], None]) -> str:
         return "motion stopped"
     except Exception as exc:  # the link may be the very thing that failed
         return f"STOP failed too ({exc}): the device may still be moving"
+
+
+def send_motion(device: str, send: Callable[[], object], stop: Callable[[], None]) -> None:
+    """Send a motion command.  A clean refusal (an error code below 50: syntax, range, not homed,
+    busy, fault) moved nothing and is re-raised as is; any other failure (no reply, garbled
+    reply, link lost, internal or HTTP 5xx error) leaves the command's fate unknown, so the device
+    is stopped first and the error says so."""
+    try:
+        send()
+    except DeviceFault as exc:
+        if exc.code < 50:
+            raise
+        annotate(exc, stop_quietly(device, stop))
+        raise
+    except BaseException as exc:
+        annotate(exc, stop_quietly(device, stop))
+        raise
 
 
 def wait_until_idle(device: str, plan: MotionPlan, poll: Callable[[], Poll], stop: Callable[[], None],

@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from drivers.errors import DeviceFault, MotionIncomplete, ProtocolError, RigMismatch, WorkspaceError
-from drivers.motion import MotionPlan, Poll, Progress, annotate, stop_quietly, wait_until_idle
+from drivers.motion import MotionPlan, Poll, Progress, send_motion, wait_until_idle
 from drivers.stewart_kinematics import IkResult, StewartKinematics, as_pose, describe
 from drivers.transport import LineTransport
 from drivers.wire import parse_fields, parse_float, parse_floats
@@ -140,13 +140,7 @@ class Stewart:
         plan = MotionPlan.of(description, float(np.max(np.abs(target_mm - start * 1000.0))), hw.speed_mm_s,
                              hw.settle_s, self.config.link.margin_s)
         line = "LEGS " + " ".join(f"{x:.3f}" for x in target_mm)
-        try:
-            self.link.request(line, idempotent=False)
-        except DeviceFault:
-            raise
-        except Exception as exc:
-            annotate(exc, stop_quietly(self.name, self.stop))
-            raise
+        send_motion(self.name, lambda: self.link.request(line, idempotent=False), self.stop)
         span = float(np.max(np.abs(target_mm / 1000.0 - start))) or 1.0
 
         def poll() -> Poll:

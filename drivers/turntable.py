@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass
 
 from drivers.errors import DeviceFault, MotionIncomplete, OutOfRange, ProtocolError, RigMismatch
-from drivers.motion import MotionPlan, Poll, Progress, annotate, stop_quietly, wait_until_idle
+from drivers.motion import MotionPlan, Poll, Progress, send_motion, wait_until_idle
 from drivers.transport import LineTransport
 from drivers.wire import parse_fields, parse_float
 from lab.comms import CommsSink, null_sink
@@ -147,14 +147,7 @@ class Turntable:
             self.home(progress)
 
     def _command(self, line: str) -> None:
-        """Send a motion command; if its fate is unknown (no reply, garbled, link lost), stop."""
-        try:
-            self.link.request(line, idempotent=False)
-        except DeviceFault:
-            raise  # the device refused: nothing moved
-        except Exception as exc:
-            annotate(exc, stop_quietly(self.name, self.stop))
-            raise
+        send_motion(self.name, lambda: self.link.request(line, idempotent=False), self.stop)
 
     def _wait(self, plan: MotionPlan, target_deg: float, start_deg: float, progress: Progress | None) -> TurntableStatus:
         span = abs(target_deg - start_deg) or 1.0

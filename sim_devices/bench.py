@@ -123,9 +123,9 @@ def start_sim_bench(rig: Rig | None = None, scenario: Scenario | None = None, *,
                     bench.pty_paths[name] = server.pty_path
             elif kind == "ipjr":
                 act = world.ipjrs[name]
+                # HTTP has no standing link to lose: a dropped request leaves the actuator moving.
                 server = HttpDeviceServer(name, ipjr_routes(act), faults, is_moving=act.moving,
-                                          motion_paths=frozenset({"/step"}), on_link_lost=act.stop,
-                                          host=host, port=port).start()
+                                          motion_paths=frozenset({"/step"}), host=host, port=port).start()
                 bench.devices[name] = act
                 bench.urls[name] = server.url
             elif kind == "camera":

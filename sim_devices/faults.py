@@ -4,7 +4,8 @@ A fault is armed on one device and fires on the commands that device receives:
 - `timeout`:    the request is swallowed: not executed, no reply;
 - `garbled`:    the request is executed but its reply is replaced by random non-ASCII bytes;
 - `disconnect`: on a command that arrives while the device is moving (a dropped connection mid-move),
-                the server closes the connection without replying; the device stops (link loss);
+                the server closes the connection without replying.  A serial device stops (link
+                loss is an emergency stop); an HTTP device keeps moving (HTTP has no standing link);
 - `stuck`:      motion commands are accepted but the actuator does not move (it stays "moving");
 - `http_500`:   (HTTP devices) the request is not executed and gets HTTP 500.
 
