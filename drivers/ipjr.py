@@ -246,15 +246,15 @@ class Ipjr:
         if isinstance(n, bool) or int(n) != n or n == 0:
             raise ValueError(f"{self.name}: steps must be a non-zero integer, got {n!r}")
         n = int(n)
-        hw = self.hardware()
-        if abs(n) > hw.max_steps:
-            raise OutOfRange(self.name, "step count", n, (-hw.max_steps, hw.max_steps), "steps", "device max_steps")
         ext = self.measure_extension() if extension_m is None else extension_m
         c = self.config
         predicted = ext + n * c.step_m
         if not -0.5 * c.step_m <= predicted <= c.stroke_m + 0.5 * c.step_m:
             raise OutOfRange(self.name, "extension after the move", predicted * 1000, (0.0, c.stroke_m * 1000), "mm",
                              f"{n} steps from {ext * 1000:.3f} mm")
+        hw = self.hardware()
+        if abs(n) > hw.max_steps:
+            raise OutOfRange(self.name, "step count", n, (-hw.max_steps, hw.max_steps), "steps", "device max_steps")
         plan = MotionPlan.of(f"{n} steps", abs(n) * hw.step_mm, hw.speed_mm_s, hw.settle_s, c.link.margin_s)
         send_motion(self.name, lambda: self.wire.step(n), self.wire.stop)
 
