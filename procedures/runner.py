@@ -79,6 +79,34 @@ class Operator:
             self.recorder.log_prompt(question, answer, automatic=self.auto)
         return answer
 
+    def ask_length(self, question: str, default_m: float | None = None) -> float:
+        """A length the operator reads off a ruler, typed in millimetres (SI inside: returns metres).
+        In simulation the world's reading is the default, which --auto accepts."""
+        if self.auto:
+            if default_m is None:
+                raise UserError(f"--auto cannot answer {question!r}: only a simulated rig supplies readings")
+            value = float(default_m)
+            text = f"{value * 1000:.3f}"
+        else:
+            hint = f" [{default_m * 1000:.3f}]" if default_m is not None else ""
+            while True:
+                raw = self._input(f"{question}{hint} mm: ").strip()
+                if not raw and default_m is not None:
+                    value = float(default_m)
+                    break
+                try:
+                    value = float(raw) / 1000.0
+                except ValueError:
+                    print(f"not a number of millimetres: {raw!r}", file=sys.stderr)
+                    continue
+                if value > 0 and value < 1e3:
+                    break
+                print(f"a length must be a positive number of millimetres, got {raw!r}", file=sys.stderr)
+            text = f"{value * 1000:.3f}"
+        if self.recorder is not None:
+            self.recorder.log_prompt(question, f"{text} mm", automatic=self.auto)
+        return value
+
     def confirm(self, instruction: str) -> None:
         """An instruction the operator acknowledges (place a module, attach IPJRs)."""
         answer = self.ask(instruction, ("done", "abort"), "done")

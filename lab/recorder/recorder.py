@@ -384,6 +384,11 @@ class RunRecorder:
                 ts.CopyFrom(m.timestamp(log_ns / 1e9))
         self._write(topic, message, log_ns)
 
+    def copy_message(self, topic: str, message: ProtoMessage, log_time_ns: int) -> None:
+        """Re-record a message read from another run file with its original log time (resume
+        keeps the completed steps of the interrupted run this way)."""
+        self._write(topic, message, int(log_time_ns))
+
     def log_text(self, level: str | int, text: str, t_s: float | None = None) -> None:
         """A log line (foxglove.Log on /log); level: debug, info, warning, error, fatal."""
         if isinstance(level, str):

@@ -1,0 +1,165 @@
+"""`lab run borg|truss` and `lab resume RUN_DIR`: operator-run procedures (procedures/)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="run an assembly procedure (simulated devices with the default rig)")
+    rsub = p.add_subparsers(dest="procedure", metavar="PROCEDURE")
+    rsub.required = True
+
+    b = rsub.add_parser("borg", help="BORG assemble-measure-verify: place each module, survey, SF-GraphSLAM, verify")
+    _common(b)
+    b.add_argument("--on-flag", choices=("stop", "continue", "retry"), default="stop",
+                   help="when a module is flagged: stop the run (default), continue, or ask for a re-deploy and re-measure")
+    b.add_argument("--n", type=int, default=None, help="BORG size (default: the rig's [sim] borg_n, else 3)")
+    b.add_argument("--modules", type=int, default=None, metavar="K",
+                   help="assemble only the first K modules (a short run)")
+    b.set_defaults(func=_run_borg)
+
+    t = rsub.add_parser("truss", help="IPJR truss assembly with MLE / EKF / open-loop correction")
+    t.add_argument("name", help="truss, as in `lab structure truss`: tetrahelix:20, telescope:45, ...")
+    _common(t)
+    t.add_argument("--estimator", choices=("mle", "ekf", "open-loop"), default="mle")
+    t.add_argument("--plan", metavar="FILE", help="assembly plan from `lab plan truss NAME --json` (default: plan now)")
+    t.add_argument("--plan-seed", type=int, default=0, help="seed of the sequence search when planning now")
+    t.set_defaults(func=_run_truss)
+
+    r = sub.add_parser("resume", help="resume an interrupted run: re-run the interrupted step, keep everything before")
+    r.add_argument("run_dir", metavar="RUN_DIR")
+    r.add_argument("--auto", action="store_true", help="answer operator prompts automatically (simulation)")
+    r.set_defaults(func=_resume)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rig", metavar="FILE", help="rig file (default: the simulated bench, lab/rigs/sim.toml)")
+    p.add_argument("--scenario", metavar="FILE", help="simulation scenario: seed, noise, faults (docs/scenarios.md)")
+    p.add_argument("--out", metavar="DIR", help="run directory (default runs/<procedure>-<time>)")
+    p.add_argument("--auto", action="store_true", help="answer operator prompts automatically (simulation)")
+    p.add_argument("--dry-run", action="store_true", help="check every planned move against limits; move nothing")
+    p.add_argument("--speedup", type=float, default=None, help="simulated devices move this many times faster")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _out_dir(args: argparse.Namespace, procedure: str) -> Path:
+    if args.out:
+        return Path(args.out)
+    return Path("runs") / f"{procedure}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def _params(args: argparse.Namespace) -> dict[str, Any]:
+    return {k: v for k, v in vars(args).items() if k not in ("func", "command", "procedure") and not k.startswith("_")}
+
+
+def _run_borg(args: argparse.Namespace) -> int:
+    return _execute("borg", _params(args))
+
+
+def _run_truss(args: argparse.Namespace) -> int:
+    return _execute("truss", _params(args))
+
+
+def _build(procedure: str, params: dict[str, Any]):
+    """(procedure object, bench, structure name) from the CLI parameters."""
+    from procedures.setup import open_bench
+
+    bench = open_bench(params.get("rig"), params.get("scenario"), speedup=params.get("speedup"))
+    try:
+        if procedure == "truss":
+            from procedures.truss import TrussProcedure
+
+            proc = TrussProcedure(bench, params["name"], params.get("estimator", "mle"), params.get("plan"),
+                                  params.get("plan_seed", 0))
+            return proc, bench, params["name"]
+        from procedures.borg import BorgProcedure
+
+        proc = BorgProcedure(bench, on_flag=params.get("on_flag", "stop"), n=params.get("n"),
+                             max_modules=params.get("modules"))
+        return proc, bench, f"borg:{proc.model.n}"
+    except BaseException:
+        bench.close()
+        raise
+
+
+def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = None) -> int:
+    from lab.recorder import RunRecorder
+    from procedures import runner
+
+    proc, bench, structure = _build(procedure, params)
+    if params.get("dry_run"):
+        try:
+            return runner.dry_run(proc)
+        finally:
+            proc.close()
+    run_dir = resume_dir or _out_dir(argparse.Namespace(**params), procedure)
+    if resume_dir is None and (run_dir / runner.RUN_FILE).exists():
+        proc.close()
+        from lab.errors import UserError
+
+        raise UserError(f"{run_dir} already holds a run; choose another --out (or `lab resume {run_dir}`)")
+    resume_state = None
+    previous = None
+    if resume_dir is not None:
+        _, resume_state = runner.load_resume(resume_dir)
+        previous = runner.archive_previous_log(resume_dir)
+    info = {"procedure": procedure, "params": params, "structure": structure, "argv": sys.argv}
+
+    def recorder_factory(path: Path) -> RunRecorder:
+        rec = RunRecorder(path, procedure, params, rig=bench.rig.data, scenario=bench.scenario.to_dict(),
+                          structure=structure)
+        bench.relay.target = rec.comms_sink
+        rec.log_design(structure, proc.model)
+        if previous is not None:
+            from procedures.resume import copy_completed_steps
+
+            copied = copy_completed_steps(previous, rec, int(resume_state["steps_completed"]))
+            rec.log_text("info", f"resumed from {previous.name}: {copied} records of "
+                                 f"{resume_state['steps_completed']} completed steps kept")
+        return rec
+
+    outcome = runner.run(proc, run_dir, info=info, operator_auto=bool(params.get("auto")),
+                         recorder_factory=recorder_factory, resume=resume_state,
+                         show_progress=not params.get("quiet"))
+    _print_outcome(procedure, outcome)
+    return outcome.exit_code
+
+
+def _print_outcome(procedure: str, outcome) -> None:
+    s = outcome.summary
+    print()
+    if procedure == "borg":
+        from procedures.borg import format_table
+
+        print(format_table(s))
+    else:
+        nodes = s.get("nodes", [])
+        print(f"{'node':>5} {'error (mm)':>11} {'estimate error (mm)':>20}")
+        for n in nodes:
+            e = n.get("error_m")
+            ee = n.get("estimate_error_m")
+            print(f"{n['id']:>5} {'' if e is None else f'{e * 1000:.3f}':>11} {'' if ee is None else f'{ee * 1000:.3f}':>20}")
+        rms = s.get("rms_node_error_m")
+        if rms is not None:
+            print(f"rms node error {rms * 1000:.3f} mm over {s.get('steps')} nodes ({s.get('estimator')})")
+    print(f"result: {outcome.result}{' - ' + outcome.reason if outcome.reason else ''}")
+    print(f"run: {outcome.run_dir / 'run.mcap'}   summary: {outcome.run_dir / 'summary.json'}")
+
+
+def _resume(args: argparse.Namespace) -> int:
+    from procedures import runner
+
+    run_dir = Path(args.run_dir)
+    info, ckpt = runner.load_resume(run_dir)
+    params = dict(info["params"])
+    if args.auto:
+        params["auto"] = True
+    print(f"resuming {info['procedure']} in {run_dir} at step {ckpt['steps_completed']}"
+          f" ({ckpt.get('last_step', 'none')} was the last completed)")
+    return _execute(info["procedure"], params, resume_dir=run_dir)
+

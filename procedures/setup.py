@@ -1,0 +1,82 @@
+"""What every procedure needs before its first step: the rig, the scenario, the simulated bench
+when the rig is a simulated one, and drivers whose comms log goes to the run being recorded."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from lab.comms import CommsRecord
+from lab.config import Rig, load_rig
+from lab.scenario import Scenario, load_scenario
+
+
+class CommsRelay:
+    """A comms sink that forwards to whatever recorder is current: drivers are opened before the
+    run's recorder exists (and again on resume), the bytes must still land in the run's log."""
+
+    def __init__(self) -> None:
+        self.target: Any = None
+
+    def __call__(self, record: CommsRecord) -> None:
+        if self.target is not None:
+            self.target(record)
+
+
+@dataclass
+class Bench:
+    rig: Rig
+    scenario: Scenario
+    sim: Any = None                # sim_devices.bench.SimBench when simulated, else None
+    devices: Any = None            # drivers.devices.Devices
+    relay: CommsRelay = field(default_factory=CommsRelay)
+    moved: set[str] = field(default_factory=set)   # names of devices commanded to move this run
+
+    @property
+    def simulated(self) -> bool:
+        return self.sim is not None
+
+    def stop_moved(self) -> list[str]:
+        """Stop every device that moved (each independently); returns what was done."""
+        out = []
+        if self.devices is None:
+            return out
+        for name in sorted(self.moved):
+            try:
+                self.devices[name].stop()
+                out.append(f"{name} stopped")
+            except Exception as exc:
+                out.append(f"{name} STOP FAILED ({exc})")
+        return out
+
+    def close(self) -> None:
+        try:
+            if self.devices is not None:
+                self.devices.close()
+        finally:
+            if self.sim is not None:
+                self.sim.stop()
+                self.sim = None
+
+
+def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *, simulate: bool | None = None,
+               speedup: float | None = None, only: list[str] | None = None) -> Bench:
+    """Load the rig and scenario; start the simulated bench if the rig has a [sim] table (or
+    `simulate` says so); connect drivers to the served URLs."""
+    from drivers.devices import connect
+
+    rig = load_rig(rig_path)
+    scenario = load_scenario(scenario_path)
+    if scenario_path is None and rig.sim is not None:
+        scenario = Scenario(seed=rig.sim.seed)
+    bench = Bench(rig, scenario)
+    use_sim = rig.sim is not None if simulate is None else simulate
+    if use_sim:
+        from sim_devices.bench import start_sim_bench
+
+        bench.sim = start_sim_bench(rig, scenario, speedup=speedup)  # arms the scenario's device faults
+        rig = bench.sim.rig
+        bench.rig = rig
+    bench.devices = connect(rig, bench.relay, only=only)
+    return bench
