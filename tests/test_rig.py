@@ -122,3 +122,16 @@ def test_with_urls_rewrites_only_the_named_devices():
     assert moved.ipjrs["ipjr2"].link.url == rig.ipjrs["ipjr2"].link.url
     with pytest.raises(KeyError):
         rig.with_urls({"laser": "x"})
+
+
+def test_the_hardware_template_is_a_valid_rig_apart_from_its_calibration_file():
+    path = default_rig_path().parent / "hardware_example.toml"
+    with pytest.raises(RigError, match=r"\[camera\].calibration: no such file"):
+        load_rig(path)
+    data = tomllib.loads(path.read_text())
+    data["camera"].pop("calibration")
+    rig = parse_rig(data, str(path))
+    assert not rig.simulated and rig.ipjrs["ipjr3"].link.url == "/dev/ttyACM0"
+    legs = np.linalg.norm(rig.stewart.geometry.home_m + rig.stewart.geometry.platform_joints_m
+                          - rig.stewart.geometry.base_joints_m, axis=1)
+    assert np.allclose(legs, 0.4243, atol=1e-4)
