@@ -151,10 +151,10 @@ def test_stewart_unreachable_pose_never_reaches_the_wire():
 
 
 # ---- IPJR: the same driver over both transports ----------------------------------------------------
-def test_ipjr_serial_step_is_limits_volts_step_then_moving_polls():
-    volts = [(b"V?\n", b"OK 2.500\n")] * 4
+def test_ipjr_serial_step_is_volts_limits_step_then_moving_polls():
+    volts = [(b"V?\n", b"OK 2.500\n")] * 4               # where it is: the stroke check needs it
     with ScriptedLineDevice([
-        (b"LIMITS?\n", IPJR_LIMITS), *volts,
+        *volts, (b"LIMITS?\n", IPJR_LIMITS),
         (b"STEP 5\n", b"OK\n"),
         (b"MOVING?\n", b"OK 1\n"),
         (b"MOVING?\n", b"OK 0\n"),
