@@ -74,3 +74,18 @@ def test_the_same_driver_over_a_pseudo_terminal(bench):
     tt.ensure_homed()
     assert tt.move_to(math.radians(12.5)) == pytest.approx(math.radians(12.5), abs=1e-4)
     tt.close()
+
+
+def test_ctrl_c_while_waiting_stops_the_turntable():
+    with start_sim_bench(fast_sim_rig(), speedup=5) as slow:
+        tt = Turntable.open(slow.rig.turntable)
+        tt.home()
+
+        def interrupt(fraction: float) -> None:
+            raise KeyboardInterrupt
+
+        with pytest.raises(KeyboardInterrupt) as err:
+            tt.move_to(math.radians(200), progress=interrupt)
+        assert any("motion stopped" in note for note in getattr(err.value, "__notes__", []))
+        assert not slow.world.turntable.moving() and slow.world.turntable_angle_rad() < math.radians(100)
+        tt.close()
