@@ -17,9 +17,10 @@ import signal
 import sys
 import time
 import traceback
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Iterator, Protocol
 
 from lab.errors import LabError, UserError
 
@@ -121,6 +122,22 @@ class RunContext:
     operator: Operator
     step: StepSpec | None = None
     progress: Callable[[str], None] = lambda text: None
+    show_progress: bool = True
+
+    @contextmanager
+    def move(self, description: str) -> Iterator[Callable[[float], None]]:
+        """A progress bar for one device move; yields the driver's `progress(fraction)` callback."""
+        from tqdm import tqdm
+
+        self.progress(description)
+        with tqdm(total=100, desc=f"  {description}", unit="%", leave=False, position=1, file=sys.stderr,
+                  disable=not self.show_progress, bar_format="{desc}: {percentage:3.0f}%|{bar}|") as bar:
+            def update(fraction: float) -> None:
+                bar.n = int(round(100 * min(1.0, max(0.0, fraction))))
+                bar.refresh()
+
+            yield update
+            update(1.0)
 
 
 def _atomic_write_json(path: Path, value: Any) -> None:
@@ -184,7 +201,7 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
     start = 0 if resume is None else int(resume["steps_completed"])
     recorder = recorder_factory(run_dir / RUN_FILE)
     operator = Operator(operator_auto, recorder)
-    ctx = RunContext(run_dir, recorder, operator)
+    ctx = RunContext(run_dir, recorder, operator, show_progress=show_progress)
     result, reason, tb = "completed", "", ""
     # SIGTERM (e.g. a supervisor stopping us) is handled like Ctrl-C: stop devices, close the run.
     previous_term = signal.getsignal(signal.SIGTERM)

@@ -136,7 +136,8 @@ class TrussProcedure:
         ext = ipjr.measure_extension()
         n = int(round((CENTRE_EXTENSION * cfg.stroke_m - ext) / cfg.step_m))
         if abs(n) >= 1:
-            ipjr.step(n)
+            with run.move(f"{name} centring") as progress:
+                ipjr.step(n, progress)
         coarse = length + rng.uniform(-COARSE_SET_M, COARSE_SET_M)
         ruler = coarse + rng.normal(0.0, self.sigma_M)
         if self.bench.simulated:
@@ -145,7 +146,8 @@ class TrussProcedure:
             f"Attach {name} to strut {base}-{node}, set the strut by hand to about {length * 1000:.1f} mm and "
             f"measure it (mm)", default_m=ruler if self.bench.simulated else None)
         ipjr.attach(reading)
-        result = ipjr.set_length(length)
+        with run.move(f"{name} to {length * 1000:.1f} mm") as progress:
+            result = ipjr.set_length(length, progress)
         run.recorder.log_record(topics.LENGTHS, m.LengthMeasurement(
             strut=f"{base}-{node}", node_a=base, node_b=node, device=name,
             nominal_m=float(np.linalg.norm(self.model.nodes[node] - self.model.nodes[base])),
