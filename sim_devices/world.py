@@ -20,7 +20,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass
-from typing import Iterable
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -268,6 +268,12 @@ class SimWorld:
             spec = self.borg.model.tags[tid]
             out.append((tid, spec.size_m, camera_T_world.compose(world_T_structure).compose(self.borg.structure_T_tag(tid))))
         return out
+
+    def reseed_camera(self, seed: Any) -> None:
+        """Restart the camera's noise stream (e.g. from [seed, stream, step, view]), so that a
+        procedure step re-run after an interruption sees the same noise as the first time."""
+        with self._lock:
+            self._camera_rng = np.random.default_rng(seed)
 
     def render(self) -> np.ndarray:
         """The image the camera sees now (BGR uint8)."""
