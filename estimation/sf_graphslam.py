@@ -1,0 +1,234 @@
+"""GraphSLAM and SF-GraphSLAM on GTSAM (paper §2.5, design.md §5).
+
+Variables: one camera pose per survey view and one pose per tag, all in the structure frame.
+Factors, a few lines per type below:
+- camera prior (noise R): the camera pose from the rig's kinematics (turntable angle, Stewart pose,
+  camera mount).  The rig's encoders are absolute, so every view gets its own prior: the paper's
+  first-pose anchor plus odometry g(u_t, x_{t-1}) with the same noise, without accumulating it;
+- tag observation (noise Q from the detector: growing with distance, frontal tilt, residual; Huber
+  kernel): BetweenFactorPose3(camera, tag, camera_T_tag);
+- semantic (noise S), SF-GraphSLAM only: BetweenFactorPose3(tag a, tag b, designed tag_a_T_tag_b)
+  for related tags (Table 1).  A semantic factor joins the graph only once the measured relative
+  pose, from the graph without it, agrees with the design: a deployable pair must be kinematically
+  valid and fully deployed (estimation/semantics.py); any other pair within `gate_m` / `gate_rad`
+  and a chi-square gate.  So the design can sharpen an estimate the measurements already agree
+  with, and never pull a real deviation back to the design: a failed gate drops that factor
+  (the pair reverts to GraphSLAM) and is reported.
+GraphSLAM is the same graph with `semantic=False`.
+
+Solvers: iSAM2 (incremental, between assembly steps; relinearise threshold 0.001 in the tangent
+units, every update) and batch Levenberg–Marquardt for studies.  Marginal covariances from iSAM2.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence
+
+import gtsam
+import numpy as np
+
+from estimation.fiducials import Detection
+from estimation.semantics import DeployCheck, deployable_check
+from lab.geometry import Pose3, Rot3
+from lab.structures.borg import BorgModel
+
+C = gtsam.symbol_shorthand.C   # camera views
+T = gtsam.symbol_shorthand.T   # tags
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    semantic: bool = True
+    camera_sigma_m: float = 0.001            # R: kinematic camera pose, translation (1 sigma)
+    camera_sigma_rad: float = math.radians(0.05)
+    semantic_sigma_m: float = 0.0005         # S: how well a fully assembled module matches its design
+    semantic_sigma_rad: float = math.radians(0.05)
+    huber_k: float = 1.345
+    gate_m: float = 0.005                    # a related pair farther than this from its design is not tied
+    gate_rad: float = math.radians(1.0)     # widened to 3 sigma where the rotation is measured worse
+    gate_chi2: float = 22.46                 # 6 dof, 99.9 %
+    height_tol_m: float = 0.005              # deployable fully deployed within this of its design lift
+    relinearize_threshold: float = 0.001
+    min_observations: int = 2                # views of both tags before a relation is decided
+
+
+@dataclass
+class RelationState:
+    a: int
+    b: int
+    kind: str
+    decided: bool = False
+    tied: bool = False                       # the semantic factor is in the graph
+    reason: str = ""                         # why it was not tied
+    deploy: DeployCheck | None = None
+
+
+class SfGraphSlam:
+    """The factor graph of one BORG survey campaign (a whole procedure, or one study trial)."""
+
+    def __init__(self, model: BorgModel, config: SlamConfig | None = None) -> None:
+        self.model = model
+        self.config = config or SlamConfig()
+        c = self.config
+        self.camera_noise = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([c.camera_sigma_rad] * 3 + [c.camera_sigma_m] * 3))
+        self.semantic_noise = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([c.semantic_sigma_rad] * 3 + [c.semantic_sigma_m] * 3))
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(c.relinearize_threshold)
+        params.relinearizeSkip = 1
+        self.isam = gtsam.ISAM2(params)
+        self.graph = gtsam.NonlinearFactorGraph()       # everything, for batch solves
+        self.initial = gtsam.Values()
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self.n_views = 0
+        self.tags: set[int] = set()
+        self.observations: dict[int, int] = {}           # tag -> number of views that saw it
+        self.relations: dict[tuple[int, int], RelationState] = {
+            (r.a, r.b): RelationState(r.a, r.b, r.kind) for r in model.relations}
+        self.estimate = gtsam.Values()
+
+    # ---- building the graph -------------------------------------------------------------------
+    def add_view(self, structure_T_camera: Pose3, detections: Sequence[Detection]) -> int:
+        """A survey view: the camera pose from the kinematics and what the detector saw."""
+        k = self.n_views
+        self.n_views += 1
+        self._add(gtsam.PriorFactorPose3(C(k), structure_T_camera, self.camera_noise))
+        self._value(C(k), structure_T_camera)
+        for d in detections:
+            if d.tag_id not in self.model.tags:
+                continue
+            cov = 0.5 * (d.covariance + d.covariance.T)
+            gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.config.huber_k), gauss)
+            self._add(gtsam.BetweenFactorPose3(C(k), T(d.tag_id), d.camera_T_tag, noise))
+            if d.tag_id not in self.tags:
+                self.tags.add(d.tag_id)
+                self._value(T(d.tag_id), structure_T_camera.compose(d.camera_T_tag))
+            self.observations[d.tag_id] = self.observations.get(d.tag_id, 0) + 1
+        return k
+
+    def _add(self, factor) -> None:
+        self._new_factors.add(factor)
+        self.graph.add(factor)
+
+    def _value(self, key: int, value: Pose3) -> None:
+        self._new_values.insert(key, value)
+        self.initial.insert(key, value)
+
+    def update(self) -> None:
+        """Incremental solve (iSAM2) with what was added since the last update; then decide the
+        semantic relations that became decidable, and solve again with the factors that passed."""
+        self._isam_step()
+        if self.config.semantic and self._decide_relations():
+            self._isam_step()
+
+    def _isam_step(self) -> None:
+        self.isam.update(self._new_factors, self._new_values)
+        self.isam.update()     # one more relinearisation pass: the tag poses start far from the prior
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self.estimate = self.isam.calculateEstimate()
+
+    def solve_batch(self, max_iterations: int = 100) -> gtsam.Values:
+        """Levenberg–Marquardt over the whole graph from the current initial values (studies)."""
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        params.setRelativeErrorTol(1e-10)
+        params.setAbsoluteErrorTol(1e-12)
+        self.estimate = gtsam.LevenbergMarquardtOptimizer(self.graph, self.initial, params).optimize()
+        return self.estimate
+
+    def decide_relations_batch(self) -> int:
+        """Batch counterpart of `update` for studies: solve, gate the relations, solve again."""
+        self.solve_batch()
+        added = self._decide_relations() if self.config.semantic else 0
+        if added:
+            self.solve_batch()
+        return added
+
+    # ---- the semantic gate -------------------------------------------------------------------
+    def _decide_relations(self) -> int:
+        added = 0
+        c = self.config
+        for rel in self.relations.values():
+            if rel.decided or rel.a not in self.tags or rel.b not in self.tags:
+                continue
+            if min(self.observations.get(rel.a, 0), self.observations.get(rel.b, 0)) < c.min_observations:
+                continue
+            rel.decided = True
+            measured = self.tag_pose(rel.a).between(self.tag_pose(rel.b))
+            design = self.model.design_between(rel.a, rel.b)
+            if rel.kind == "deployable":
+                bottom, top = (rel.a, rel.b) if self._is_bottom(rel.a) else (rel.b, rel.a)
+                m_bt = self.tag_pose(bottom).between(self.tag_pose(top))
+                rel.deploy = deployable_check(m_bt, self.model.spacing_m, height_tol_m=c.height_tol_m)
+                if not rel.deploy.deployed:
+                    rel.reason = rel.deploy.reason
+                    continue
+            err = Pose3.Logmap(design.between(measured))
+            cov = self._relative_covariance(rel.a, rel.b)
+            chi2 = float(err @ np.linalg.solve(cov, err)) if cov is not None else 0.0
+            dt, dr = float(np.linalg.norm(err[3:])), float(np.linalg.norm(err[:3]))
+            # tie only what the measurements already agree with: close to the design, and not
+            # significantly different from it given how well the pair is measured
+            if dt > c.gate_m or dr > max(c.gate_rad, 3.0 * self._rot_sigma(cov)) or chi2 > c.gate_chi2:
+                rel.reason = (f"relative pose {dt * 1000:.1f} mm / {math.degrees(dr):.2f} deg from design "
+                              f"(chi2 {chi2:.1f})")
+                continue
+            self._add(gtsam.BetweenFactorPose3(T(rel.a), T(rel.b), design, self.semantic_noise))
+            rel.tied = True
+            added += 1
+        return added
+
+    @staticmethod
+    def _rot_sigma(cov: np.ndarray | None) -> float:
+        return 0.0 if cov is None else float(math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0)))
+
+    def _is_bottom(self, tag: int) -> bool:
+        m = self.model.module_by_name[self.model.tags[tag].module]
+        return m.tags[0] == tag
+
+    def _relative_covariance(self, a: int, b: int) -> np.ndarray | None:
+        try:
+            ca = self.isam.marginalCovariance(T(a))
+            cb = self.isam.marginalCovariance(T(b))
+        except RuntimeError:
+            return None
+        # a's and b's errors mostly add (shared cameras correlate them; ignoring that is conservative)
+        rel = self.tag_pose(a).between(self.tag_pose(b))
+        Ad = rel.inverse().AdjointMap()
+        return Ad @ ca @ Ad.T + cb + np.eye(6) * 1e-12
+
+    # ---- results ---------------------------------------------------------------------------------
+    def tag_pose(self, tag: int) -> Pose3:
+        return self.estimate.atPose3(T(tag))
+
+    def has_tag(self, tag: int) -> bool:
+        return self.estimate.exists(T(tag))
+
+    def tag_covariance(self, tag: int) -> np.ndarray:
+        return self.isam.marginalCovariance(T(tag))
+
+    def camera_pose(self, k: int) -> Pose3:
+        return self.estimate.atPose3(C(k))
+
+    def tag_estimates(self) -> dict[int, Pose3]:
+        return {t: self.tag_pose(t) for t in sorted(self.tags) if self.has_tag(t)}
+
+    def not_deployed(self) -> dict[str, DeployCheck]:
+        """Deployables whose B->T pair failed the deployment check, by module name."""
+        out = {}
+        for rel in self.relations.values():
+            if rel.kind == "deployable" and rel.deploy is not None and not rel.deploy.deployed:
+                out[self.model.tags[rel.a].module] = rel.deploy
+        return out
+
+    def untied(self) -> list[RelationState]:
+        return [r for r in self.relations.values() if r.decided and not r.tied]
+
+    def total_error(self) -> float:
+        return float(self.graph.error(self.estimate))

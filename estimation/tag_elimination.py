@@ -1,0 +1,87 @@
+"""Tag elimination (SF-GraphSLAM paper §3.4): fit the observed tags to the design and reject the
+ones that cannot be where a properly placed tag would be, while the rest of the structure fits.
+
+The paper predicts every tag from one base tag and the ideal transforms.  A base tag's rotation
+error is amplified by the lever arm (1 deg over 1.5 m is 26 mm), so we take the paper's fit as the
+start and refine it: a rigid transform from design to estimate, fitted to the tag positions by
+least squares over the inliers (Kabsch), re-fitted until the inlier set stops changing.  Then the
+distances are sorted, worst first, and tags beyond the cutoff are rejected, at most `max_remove`
+of them, and only while at least `min_tags` remain (the paper: a minimum of three).
+
+Deviations a known mechanism explains are not a tag's fault: a deployable found partially
+deployed moves its top tag along its lift axis, so that component is removed before the distance
+test (`explained_axes`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+
+from lab.geometry import Pose3, Rot3
+from lab.structures.borg import BorgModel
+
+
+@dataclass(frozen=True)
+class EliminationResult:
+    rejected: list[int]                       # worst first
+    distances_m: dict[int, float]             # every tag's distance from its fitted design spot
+    base_tag: int
+    design_T_estimate: Pose3                  # the fitted rigid correction (structure frame)
+
+
+def _kabsch(src: np.ndarray, dst: np.ndarray) -> Pose3:
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    H = (src - cs).T @ (dst - cd)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return Pose3(Rot3(R), cd - R @ cs)
+
+
+def eliminate_tags(estimates: Mapping[int, Pose3], model: BorgModel, *, cutoff_m: float = 0.05,
+                   max_remove: int = 3, min_tags: int = 3, base_tag: int | None = None,
+                   explained_axes: Mapping[int, np.ndarray] | None = None) -> EliminationResult:
+    ids = sorted(t for t in estimates if t in model.tags)
+    if len(ids) < min_tags:
+        return EliminationResult([], {}, ids[0] if ids else -1, Pose3())
+    design = np.array([model.tags[t].structure_T_tag.translation() for t in ids])
+    est = np.array([estimates[t].translation() for t in ids])
+    explained = explained_axes or {}
+
+    def distances(fit: Pose3) -> np.ndarray:
+        pred = (fit.rotation().matrix() @ design.T).T + fit.translation()
+        diff = est - pred
+        for k, t in enumerate(ids):
+            if t in explained:
+                a = np.asarray(explained[t], dtype=float)
+                a = a / np.linalg.norm(a)
+                diff[k] -= np.dot(diff[k], a) * a
+        return np.linalg.norm(diff, axis=1)
+
+    # the paper's start: everything predicted from one base tag (the most consistent one if not given)
+    def base_fit(b: int) -> Pose3:
+        return estimates[b].compose(model.tags[b].structure_T_tag.inverse())
+
+    if base_tag is None or base_tag not in estimates:
+        base_tag = min(ids, key=lambda b: float(np.median(distances(base_fit(b)))))
+    fit = base_fit(base_tag)
+    inliers = distances(fit) <= cutoff_m
+    for _ in range(10):
+        if inliers.sum() < 3:
+            break
+        fit = _kabsch(design[inliers], est[inliers])
+        new = distances(fit) <= cutoff_m
+        if np.array_equal(new, inliers):
+            break
+        inliers = new
+    d = distances(fit)
+    order = np.argsort(-d)
+    rejected = []
+    for k in order:
+        if d[k] <= cutoff_m or len(rejected) >= max_remove or len(ids) - len(rejected) <= min_tags:
+            break
+        rejected.append(ids[k])
+    return EliminationResult(rejected, {t: float(v) for t, v in zip(ids, d)}, base_tag, fit)

@@ -1,0 +1,94 @@
+"""Module verdicts from an estimate: `ok`, `flagged` (with a reason) or `unverified`.
+
+A module's pose is estimated from its usable tags (not rejected, estimated): the tag's estimated
+pose times the designed tag-to-module transform (a deployable's bottom tag places it; its top tag
+only if the bottom one is unusable and the module is deployed).  It is compared with the design:
+- `unverified`: no usable tag (none seen, or every one rejected as displaced);
+- `flagged`: a deployable that is not fully deployed (or kinematically impossible), or a pose
+  outside the tolerance for its type (default 5 mm and 1 deg); for close-out members the reason
+  names the zone (final assembly / captured / outside capture, estimation/semantics.py);
+- `ok` otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+
+from estimation.semantics import DeployCheck, closeout_zone
+from lab.geometry import Pose3, pose_error
+from lab.structures.borg import BorgModel
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    position_m: float = 0.005
+    rotation_rad: float = math.radians(1.0)
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    deployable: Tolerance = Tolerance()
+    closeout_strut: Tolerance = Tolerance()
+    closeout_square: Tolerance = Tolerance()
+
+    def of(self, kind: str) -> Tolerance:
+        return getattr(self, kind)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    module: str
+    verdict: str                         # ok | flagged | unverified
+    reason: str
+    estimate: Pose3 | None               # structure_T_module
+    deviation_m: float | None            # against the design
+    deviation_rad: float | None
+    sigma_m: float | None                # 1-sigma position uncertainty of the tag used
+    tags_used: tuple[int, ...]
+
+
+def module_from_tag(model: BorgModel, module: str, tag: int, structure_T_tag: Pose3) -> Pose3:
+    m = model.module_by_name[module]
+    tag_T_module = model.tags[tag].structure_T_tag.inverse().compose(m.structure_T_module)
+    return structure_T_tag.compose(tag_T_module)
+
+
+def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3], *,
+                  covariances: Mapping[int, np.ndarray] | None = None, rejected: set[int] | frozenset[int] = frozenset(),
+                  not_deployed: Mapping[str, DeployCheck] | None = None,
+                  tolerances: Tolerances | None = None) -> Verdict:
+    m = model.module_by_name[module]
+    tol = (tolerances or Tolerances()).of(m.kind)
+    covs = covariances or {}
+    usable = [t for t in m.tags if t in estimates and t not in rejected]
+    rejected_here = [t for t in m.tags if t in rejected]
+    if not usable:
+        why = (f"tag {', '.join(map(str, rejected_here))} rejected as displaced" if rejected_here
+               else "no tag of it was seen")
+        return Verdict(module, "unverified", why, None, None, None, None, ())
+    deploy = (not_deployed or {}).get(module)
+    if m.kind == "deployable" and deploy is not None:
+        est = module_from_tag(model, module, m.tags[0], estimates[m.tags[0]]) if m.tags[0] in usable else None
+        dev = pose_error(est, m.structure_T_module) if est is not None else (None, None)
+        return Verdict(module, "flagged", deploy.reason, est, dev[0], dev[1], None, tuple(usable))
+    tag = usable[0]
+    est = module_from_tag(model, module, tag, estimates[tag])
+    dt, dr = pose_error(est, m.structure_T_module)
+    sigma = float(math.sqrt(np.trace(covs[tag][3:, 3:]))) if tag in covs else None
+    note = f" (tag {', '.join(map(str, rejected_here))} rejected as displaced)" if rejected_here else ""
+    if dt <= tol.position_m and dr <= tol.rotation_rad:
+        return Verdict(module, "ok", note.strip(" ()"), est, dt, dr, sigma, tuple(usable))
+    reason = (f"out of tolerance: {dt * 1000:.1f} mm (tolerance {tol.position_m * 1000:.1f} mm), "
+              f"{math.degrees(dr):.2f} deg (tolerance {math.degrees(tol.rotation_rad):.2f} deg)")
+    if m.kind in ("closeout_strut", "closeout_square"):
+        design_T_est = m.structure_T_module.between(est)
+        p = [model.nodes[i] for i in m.nodes]
+        axis_structure = p[1] - p[0]
+        axis = m.structure_T_module.rotation().matrix().T @ axis_structure
+        lever = max(float(np.linalg.norm(q - m.structure_T_module.translation())) for q in p)
+        reason += "; " + closeout_zone(design_T_est, axis, lever).describe()
+    return Verdict(module, "flagged", reason + note, est, dt, dr, sigma, tuple(usable))

@@ -1,0 +1,307 @@
+"""BORG assemble-measure-verify (`lab run borg`): one step per module, in assembly order.
+
+Each step: the operator places (or deploys) the module — in simulation the world does, with the
+scenario's errors; the survey planned from the design moves the turntable and the Stewart platform
+to views that see the new module's tags with their related tags; the camera grabs; the fiducial
+detector reads the tags; SF-GraphSLAM takes the views incrementally (iSAM2); tags that don't fit the
+design are eliminated; the module gets its verdict.  A flag stops the run (default), is noted and
+passed (`--on-flag continue`), or sends the operator to re-deploy and re-measure (`retry`).
+
+Everything is planned before the first move, so `--dry-run` checks every turntable angle and
+Stewart pose of the whole procedure against the limits and the workspace.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from lab.errors import UserError
+from lab.geometry import Pose3, from_xyzrpy, pose_error
+from lab.recorder import messages as m
+from lab.recorder import topics
+from lab.structures.borg import BorgModel, build_borg
+from procedures.runner import RunContext, StepSpec, StopRun
+from procedures.setup import Bench
+from procedures.survey import CameraModel, SurveyPlan, SurveyPlanner, View
+
+ON_FLAG = ("stop", "continue", "retry")
+MAX_RETRIES = 2
+_STREAM_CAMERA = 8200    # simulated camera noise per step: [seed, _STREAM_CAMERA, step, attempt]
+IMAGE_FORMAT = "jpeg"    # logged images (detection runs on the lossless frame)
+
+
+@dataclass
+class ModuleResult:
+    name: str
+    verdict: str = "unverified"
+    reason: str = ""
+    position_error_m: float | None = None     # estimate vs simulated truth (hardware: None)
+    rotation_error_rad: float | None = None
+    deviation_m: float | None = None          # estimate vs design
+    deviation_rad: float | None = None
+    sigma_position_m: float | None = None     # estimated 1-sigma position uncertainty
+    tags_seen: list[int] = field(default_factory=list)
+    attempts: int = 1
+
+    def to_json(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items()}
+
+
+class BorgProcedure:
+    name = "borg"
+
+    def __init__(self, bench: Bench, on_flag: str = "stop", n: int | None = None, max_modules: int | None = None,
+                 estimator_config: Any = None) -> None:
+        if on_flag not in ON_FLAG:
+            raise UserError(f"--on-flag must be one of {', '.join(ON_FLAG)}, got {on_flag!r}")
+        rig = bench.rig
+        missing = [k for k in ("turntable", "stewart", "camera") if getattr(rig, k) is None]
+        if missing:
+            raise UserError(f"rig {rig.name!r} has no {', '.join(missing)}: the BORG procedure needs a turntable, "
+                            f"a Stewart platform and a camera")
+        self.bench = bench
+        self.on_flag = on_flag
+        size = n if n is not None else (rig.sim.borg_n if rig.sim is not None else 3)
+        if bench.simulated and bench.sim.world.borg is not None and bench.sim.world.borg.model.n != size:
+            raise UserError(f"--n {size} differs from the simulated structure (borg_n = {bench.sim.world.borg.model.n})")
+        self.model: BorgModel = build_borg(size)
+        modules = list(self.model.modules)
+        if max_modules is not None:
+            if not 1 <= max_modules <= len(modules):
+                raise UserError(f"--modules must be in 1..{len(modules)}, got {max_modules}")
+            modules = modules[:max_modules]
+        self.modules = modules
+        self.intrinsics = bench.devices.camera.intrinsics
+        if self.intrinsics is None:
+            raise UserError(f"camera {rig.camera.name}: no calibration file; run `lab calibrate camera` first")
+        from drivers.stewart_kinematics import StewartKinematics
+
+        self.kinematics = StewartKinematics(rig.stewart.geometry)
+        cam = CameraModel(self.intrinsics.K, self.intrinsics.width_px, self.intrinsics.height_px,
+                          rig.stewart.world_T_base, rig.stewart.geometry.home_m, rig.camera.platform_T_camera)
+        self.camera_model = cam
+        self.planner = SurveyPlanner(self.model, cam, lambda p: self.kinematics.inverse(p).reachable,
+                                     (rig.turntable.min_rad, rig.turntable.max_rad))
+        placed: list[str] = []
+        self.surveys: dict[str, SurveyPlan] = {}
+        for mod in modules:
+            placed.append(mod.name)
+            self.surveys[mod.name] = self.planner.plan(mod.name, placed)
+        from procedures.borg_measure import Measurement
+
+        self.measure = Measurement(self.model, self.intrinsics, estimator_config)
+        self.results: dict[str, ModuleResult] = {}
+        self.views_done: list[dict[str, Any]] = []     # every view taken, for checkpoints / replay
+        self.homed = False
+
+    # ---- plan and dry run --------------------------------------------------------------------
+    def plan(self) -> list[StepSpec]:
+        return [StepSpec(k, f"module {mod.name}", {"module": mod.name, "kind": mod.kind,
+                                                   "views": [v.label for v in self.surveys[mod.name].views]})
+                for k, mod in enumerate(self.modules)]
+
+    def dry_run_problems(self, steps: list[StepSpec]) -> list[str]:
+        tt, st = self.bench.devices.turntable, self.bench.devices.stewart
+        problems = []
+        for spec in steps:
+            for v in self.surveys[spec.params["module"]].views:
+                try:
+                    tt.check_angle(v.turntable_rad)
+                except Exception as exc:
+                    problems.append(f"{spec.name}: {exc}")
+                try:
+                    st.check_pose(v.stewart_pose)
+                except Exception as exc:
+                    problems.append(f"{spec.name}: {exc}")
+            if self.surveys[spec.params["module"]].unobservable:
+                problems.append(f"{spec.name}: no planned view sees tags {self.surveys[spec.params['module']].unobservable}")
+        return problems
+
+    # ---- one step ------------------------------------------------------------------------------
+    def execute(self, spec: StepSpec, run: RunContext) -> None:
+        module = self.model.module_by_name[spec.params["module"]]
+        if not self.homed:
+            self._home(run)
+        run.operator.confirm(f"{'Deploy' if module.kind == 'deployable' else 'Place'} module {module.name} "
+                             f"({module.kind.replace('_', ' ')}, tags {', '.join(map(str, module.tags))})")
+        if self.bench.simulated:
+            self.bench.sim.world.borg.place(module.name)
+        attempt = 0
+        while True:
+            attempt += 1
+            result = self._survey_and_verify(spec, run, module.name, attempt)
+            result.attempts = attempt
+            self.results[module.name] = result
+            self._log_verdict(run, spec.index, result)
+            if result.verdict != "flagged" or self.on_flag == "continue":
+                return
+            if self.on_flag == "stop":
+                raise StopRun(f"module {module.name} flagged: {result.reason}")
+            if attempt > MAX_RETRIES:
+                raise StopRun(f"module {module.name} still flagged after {MAX_RETRIES} re-deploys: {result.reason}")
+            answer = run.operator.ask(f"Module {module.name} flagged ({result.reason}). Re-deploy it and measure again?",
+                                      ("retry", "continue", "stop"), "retry")
+            if answer == "stop":
+                raise StopRun(f"module {module.name} flagged: {result.reason} (operator stopped)")
+            if answer == "continue":
+                return
+            if self.bench.simulated:
+                self._redeploy_in_world(module.name)
+
+    def _home(self, run: RunContext) -> None:
+        tt, st = self.bench.devices.turntable, self.bench.devices.stewart
+        self.bench.moved.update({tt.name, st.name})
+        with run.move("turntable homing") as progress:
+            tt.ensure_homed(progress)
+        with run.move("Stewart platform home") as progress:
+            st.home(progress)
+        K, dist = self.intrinsics.K, self.intrinsics.dist
+        run.recorder.log_calibration(topics.CAMERA_CALIBRATION, K, dist, self.intrinsics.width_px,
+                                     self.intrinsics.height_px, "camera")
+        self.homed = True
+
+    def _redeploy_in_world(self, name: str) -> None:
+        """The operator re-deploys: in simulation the module comes out as designed this time."""
+        borg = self.bench.sim.world.borg
+        mod = self.model.module_by_name[name]
+        if mod.kind == "deployable":
+            borg.set_deployed_height(name, None)
+        borg.set_module_offset(name)
+
+    def _survey_and_verify(self, spec: StepSpec, run: RunContext, name: str, attempt: int) -> ModuleResult:
+        rec = run.recorder
+        devices = self.bench.devices
+        survey = self.surveys[name]
+        views = []
+        for k, view in enumerate(survey.views):
+            frame, world_T_camera = self._capture(run, view, spec.index, attempt, k)
+            t = frame.t_s
+            rec.log_image(topics.CAMERA_IMAGE, frame.image, t, "camera", format=IMAGE_FORMAT)
+            structure_T_camera = self.model.world_T_structure(view.turntable_rad).inverse().compose(world_T_camera)
+            rec.log_transform("world", "structure", self.model.world_T_structure(view.turntable_rad), t)
+            rec.log_transform("world", "camera", world_T_camera, t)
+            detections = self.measure.detect(frame.image, structure_T_camera)
+            rec.log_record(topics.DETECTIONS, self.measure.detections_message(detections, t))
+            record = {"module": name, "step": spec.index, "attempt": attempt, "view": k,
+                      "turntable_rad": view.turntable_rad, "stewart_pose": list(view.stewart_pose),
+                      "structure_T_camera": structure_T_camera.matrix().tolist(),
+                      "detections": self.measure.detections_to_json(detections)}
+            views.append(record)
+        self.views_done.extend(views)
+        t0 = time.perf_counter()
+        self.measure.add_step(name, views)
+        solve_s = time.perf_counter() - t0
+        rec.log_metric("slam/update_s", solve_s, "s")
+        result = self.measure.verdict(name)
+        self._log_estimates(run)
+        if self.bench.simulated:
+            self._truth_errors(result)
+        return result
+
+    def _capture(self, run: RunContext, view: View, step: int, attempt: int, k: int):
+        devices = self.bench.devices
+        tt, st, cam = devices.turntable, devices.stewart, devices.camera
+        with run.move(f"turntable to {np.degrees(view.turntable_rad):+.0f} deg") as progress:
+            tt.move_to(view.turntable_rad, progress)
+        with run.move("Stewart platform") as progress:
+            st.move_to(view.stewart_pose, progress)
+        if self.bench.simulated:
+            # the simulated camera's noise for this view depends only on (seed, step, attempt, view)
+            self.bench.sim.world.reseed_camera([self.bench.scenario.seed, _STREAM_CAMERA, step, attempt, k])
+        frame = cam.grab()
+        world_T_camera = self.camera_model.world_T_camera(view)
+        return frame, world_T_camera
+
+    def _log_estimates(self, run: RunContext) -> None:
+        estimates = self.measure.tag_estimates()
+        if estimates:
+            poses = {tid: p for tid, (p, _) in estimates.items()}
+            covs = {tid: c for tid, (_, c) in estimates.items()}
+            run.recorder.log_tag_estimates(poses, "structure", covariances=covs)
+
+    def _log_verdict(self, run: RunContext, index: int, r: ModuleResult) -> None:
+        run.recorder.log_record(topics.VERDICTS, m.module_verdict(
+            r.name, r.verdict, r.reason,
+            position_error_m=r.position_error_m if r.position_error_m is not None else float("nan"),
+            rotation_error_rad=r.rotation_error_rad if r.rotation_error_rad is not None else float("nan"),
+            step_index=index, tag_ids=list(self.model.module_by_name[r.name].tags),
+            rejected_tag_ids=sorted(self.measure.rejected_tags)))
+        run.recorder.log_text("warning" if r.verdict == "flagged" else "info",
+                              f"module {r.name}: {r.verdict}{' - ' + r.reason if r.reason else ''}")
+
+    def _truth_errors(self, r: ModuleResult) -> None:
+        est = self.measure.module_estimate(r.name)
+        if est is None:
+            return
+        truth = self.bench.sim.world.borg.structure_T_module(r.name)
+        r.position_error_m, r.rotation_error_rad = pose_error(est, truth)
+
+    # ---- checkpoints -------------------------------------------------------------------------
+    def checkpoint(self) -> dict[str, Any]:
+        return {"views": self.views_done, "results": {k: v.to_json() for k, v in self.results.items()},
+                "placed": list(self.bench.sim.world.borg.placed) if self.bench.simulated else [],
+                "homed": self.homed}
+
+    def restore(self, state: dict[str, Any], steps_done: list[StepSpec], run: RunContext) -> None:
+        """Replay the completed steps' views into a fresh estimator, step by step as they happened,
+        so the estimate (and every later verdict) is the one an uninterrupted run would have."""
+        from procedures.borg_measure import Measurement
+
+        self.measure = Measurement(self.model, self.intrinsics, self.measure.config)
+        self.views_done = list(state.get("views", []))
+        by_step: dict[tuple[int, int], list[dict]] = {}
+        for v in self.views_done:
+            by_step.setdefault((v["step"], v["attempt"]), []).append(v)
+        for (step, attempt), views in sorted(by_step.items()):
+            self.measure.add_step(views[0]["module"], views, replay=True)
+        self.results = {k: ModuleResult(**v) for k, v in state.get("results", {}).items()}
+        if self.bench.simulated:
+            for name in state.get("placed", []):
+                self.bench.sim.world.borg.place(name)
+            for name, r in self.results.items():
+                if r.attempts > 1 and r.verdict != "flagged":
+                    self._redeploy_in_world(name)
+        self.homed = False   # a new session: home again before moving
+
+    # ---- the end -------------------------------------------------------------------------------
+    def summary(self, result: str, reason: str) -> dict[str, Any]:
+        modules = []
+        for mod in self.modules:
+            r = self.results.get(mod.name)
+            if r is None:
+                continue
+            modules.append({"name": r.name, "verdict": r.verdict, "reason": r.reason,
+                            "position_error_m": r.position_error_m, "rotation_error_rad": r.rotation_error_rad,
+                            "deviation_m": r.deviation_m, "deviation_rad": r.deviation_rad,
+                            "sigma_position_m": r.sigma_position_m, "tags_seen": r.tags_seen,
+                            "attempts": r.attempts})
+        return {"result": result, "reason": reason, "structure": f"borg:{self.model.n}", "on_flag": self.on_flag,
+                "simulated": self.bench.simulated, "modules": modules,
+                "rejected_tags": sorted(self.measure.rejected_tags), "steps": len(modules),
+                "views": len(self.views_done)}
+
+    def stop_devices(self) -> list[str]:
+        return self.bench.stop_moved()
+
+    def close(self) -> None:
+        self.bench.close()
+
+
+def format_table(summary: dict[str, Any]) -> str:
+    """The verification table printed at the end of `lab run borg`."""
+    lines = [f"{'module':<7} {'verdict':<10} {'error (mm)':>10} {'error (deg)':>11} {'dev (mm)':>9}  reason"]
+    for mod in summary.get("modules", []):
+        e = mod.get("position_error_m")
+        r = mod.get("rotation_error_rad")
+        d = mod.get("deviation_m")
+        lines.append(f"{mod['name']:<7} {mod['verdict']:<10} {'' if e is None else f'{e * 1000:.2f}':>10} "
+                     f"{'' if r is None else f'{np.degrees(r):.3f}':>11} {'' if d is None else f'{d * 1000:.2f}':>9}  "
+                     f"{mod.get('reason', '')}")
+    counts = {v: sum(1 for mm in summary.get("modules", []) if mm["verdict"] == v) for v in ("ok", "flagged", "unverified")}
+    lines.append(f"{counts['ok']} ok, {counts['flagged']} flagged, {counts['unverified']} unverified; "
+                 f"rejected tags: {summary.get('rejected_tags', [])}")
+    return "\n".join(lines)

@@ -1,0 +1,113 @@
+"""The measuring half of a BORG step: detections -> SF-GraphSLAM update -> tag elimination ->
+verdict.  Keeps the estimator state of a whole run and serialises what it consumed, so that a
+resumed run replays the same inputs in the same order and reaches the same estimate."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from estimation.fiducials import Detection, TagDetector
+from estimation.sf_graphslam import SfGraphSlam, SlamConfig
+from estimation.tag_elimination import eliminate_tags
+from estimation.verification import Tolerances, Verdict, module_from_tag, verify_module
+from lab.geometry import Pose3, from_xyzquat, to_xyzquat
+from lab.recorder import messages as m
+from lab.structures.borg import BorgModel
+
+
+class Measurement:
+    def __init__(self, model: BorgModel, intrinsics: Any, config: dict[str, Any] | None = None) -> None:
+        self.model = model
+        self.config = dict(config or {})
+        self.detector = TagDetector(intrinsics.K, intrinsics.dist, {t: s.size_m for t, s in model.tags.items()})
+        self.slam = SfGraphSlam(model, SlamConfig(semantic=self.config.get("semantic", True)))
+        self.tolerances = Tolerances()
+        self.cutoff_m = float(self.config.get("elimination_cutoff_m", 0.05))
+        self.rejected_tags: set[int] = set()
+        self.placed: list[str] = []
+        self._verdicts: dict[str, Verdict] = {}
+
+    # ---- detection ---------------------------------------------------------------------------
+    def detect(self, image: np.ndarray, structure_T_camera: Pose3 | None = None) -> list[Detection]:
+        predict = None
+        if structure_T_camera is not None:
+            camera_T_structure = structure_T_camera.inverse()
+
+            def predict(tid: int) -> Pose3 | None:
+                spec = self.model.tags.get(tid)
+                return None if spec is None else camera_T_structure.compose(spec.structure_T_tag)
+        return self.detector.detect(image, predict)
+
+    @staticmethod
+    def detections_to_json(detections: list[Detection]) -> list[dict[str, Any]]:
+        return [{"id": d.tag_id, "corners_px": d.corners_px.tolist(), "pose": to_xyzquat(d.camera_T_tag),
+                 "covariance": d.covariance.tolist(), "reprojection_px": d.reprojection_px,
+                 "ambiguity_ratio": d.ambiguity_ratio if math.isfinite(d.ambiguity_ratio) else 1e9,
+                 "ambiguous": d.ambiguous, "size_m": d.size_m} for d in detections]
+
+    @staticmethod
+    def detections_from_json(items: list[dict[str, Any]]) -> list[Detection]:
+        return [Detection(int(d["id"]), np.asarray(d["corners_px"]), from_xyzquat(d["pose"]),
+                          np.asarray(d["covariance"]), float(d["reprojection_px"]), float(d["ambiguity_ratio"]),
+                          bool(d["ambiguous"]), float(d["size_m"])) for d in items]
+
+    @staticmethod
+    def detections_message(detections: list[Detection], t_s: float) -> Any:
+        return m.TagDetections(timestamp=m.timestamp(t_s), frame_id="camera", detections=[
+            m.tag_detection(d.tag_id, d.corners_px, d.camera_T_tag, d.covariance, d.reprojection_px,
+                            d.ambiguity_ratio if math.isfinite(d.ambiguity_ratio) else 0.0) for d in detections])
+
+    # ---- one step ------------------------------------------------------------------------------
+    def add_step(self, module: str, views: list[dict[str, Any]], replay: bool = False) -> None:
+        if module not in self.placed:
+            self.placed.append(module)
+        for v in views:
+            structure_T_camera = Pose3(np.asarray(v["structure_T_camera"]))
+            self.slam.add_view(structure_T_camera, self.detections_from_json(v["detections"]))
+        self.slam.update()
+        self._eliminate()
+
+    def _eliminate(self) -> None:
+        estimates = self.slam.tag_estimates()
+        explained = {}
+        for name, check in self.slam.not_deployed().items():
+            top = self.model.module_by_name[name].tags[1]
+            explained[top] = self.model.tags[top].structure_T_tag.rotation().matrix()[:, 1]
+        result = eliminate_tags(estimates, self.model, cutoff_m=self.cutoff_m, explained_axes=explained)
+        self.rejected_tags.update(result.rejected)
+
+    # ---- results -----------------------------------------------------------------------------------
+    def verdict(self, module: str):
+        from procedures.borg import ModuleResult
+
+        estimates = self.slam.tag_estimates()
+        covs = {}
+        for t in self.model.module_by_name[module].tags:
+            if t in estimates:
+                try:
+                    covs[t] = self.slam.tag_covariance(t)
+                except RuntimeError:
+                    pass
+        v = verify_module(self.model, module, estimates, covariances=covs, rejected=self.rejected_tags,
+                          not_deployed=self.slam.not_deployed(), tolerances=self.tolerances)
+        self._verdicts[module] = v
+        return ModuleResult(module, v.verdict, v.reason, deviation_m=v.deviation_m, deviation_rad=v.deviation_rad,
+                            sigma_position_m=v.sigma_m, tags_seen=[t for t in self.model.module_by_name[module].tags
+                                                                   if t in estimates])
+
+    def module_estimate(self, module: str) -> Pose3 | None:
+        v = self._verdicts.get(module)
+        return v.estimate if v is not None else None
+
+    def tag_estimates(self) -> dict[int, tuple[Pose3, np.ndarray | None]]:
+        out = {}
+        for t, p in self.slam.tag_estimates().items():
+            try:
+                c = self.slam.tag_covariance(t)
+            except RuntimeError:
+                c = None
+            out[t] = (p, c)
+        return out
