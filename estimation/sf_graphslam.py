@@ -11,7 +11,7 @@ Factors, a few lines per type below:
   for related tags (Table 1).  A semantic factor joins the graph only once the measured relative
   pose, from the graph without it, agrees with the design: a deployable pair must be kinematically
   valid and fully deployed (estimation/semantics.py); any other pair within `gate_m` / `gate_rad`
-  and a chi-square gate.  So the design can sharpen an estimate the measurements already agree
+  of its design (widened to 3 sigma where the pair is measured worse).  So the design can sharpen an estimate the measurements already agree
   with, and never pull a real deviation back to the design: a failed gate drops that factor
   (the pair reverts to GraphSLAM) and is reported.
 GraphSLAM is the same graph with `semantic=False`.
@@ -48,7 +48,6 @@ class SlamConfig:
     huber_k: float = 1.345
     gate_m: float = 0.005                    # a related pair farther than this from its design is not tied
     gate_rad: float = math.radians(1.0)     # widened to 3 sigma where the rotation is measured worse
-    gate_chi2: float = 22.46                 # 6 dof, 99.9 %
     height_tol_m: float = 0.005              # deployable fully deployed within this of its design lift
     relinearize_threshold: float = 0.001
     min_observations: int = 2                # views of both tags before a relation is decided
@@ -160,29 +159,61 @@ class SfGraphSlam:
             if min(self.observations.get(rel.a, 0), self.observations.get(rel.b, 0)) < c.min_observations:
                 continue
             rel.decided = True
-            measured = self.tag_pose(rel.a).between(self.tag_pose(rel.b))
             design = self.model.design_between(rel.a, rel.b)
             if rel.kind == "deployable":
-                bottom, top = (rel.a, rel.b) if self._is_bottom(rel.a) else (rel.b, rel.a)
-                m_bt = self.tag_pose(bottom).between(self.tag_pose(top))
-                rel.deploy = deployable_check(m_bt, self.model.spacing_m, height_tol_m=c.height_tol_m)
+                rel.deploy = self._deploy_check(rel)
                 if not rel.deploy.deployed:
                     rel.reason = rel.deploy.reason
                     continue
-            err = Pose3.Logmap(design.between(measured))
+            # Compare positions in the structure frame along the design's directions: a tag's tilt
+            # is its worst-measured quantity, and over a 0.5 m lever it would fake an offset.
+            pa, pb = self.tag_pose(rel.a), self.tag_pose(rel.b)
+            design_a = self.model.tags[rel.a].structure_T_tag
+            offset = (pb.translation() - pa.translation()) - design_a.rotation().rotate(design.translation())
+            dt = float(np.linalg.norm(offset))
+            dr = float(np.linalg.norm(Rot3.Logmap(design.rotation().between(pa.rotation().between(pb.rotation())))))
             cov = self._relative_covariance(rel.a, rel.b)
-            chi2 = float(err @ np.linalg.solve(cov, err)) if cov is not None else 0.0
-            dt, dr = float(np.linalg.norm(err[3:])), float(np.linalg.norm(err[:3]))
-            # tie only what the measurements already agree with: close to the design, and not
-            # significantly different from it given how well the pair is measured
-            if dt > c.gate_m or dr > max(c.gate_rad, 3.0 * self._rot_sigma(cov)) or chi2 > c.gate_chi2:
+            sig_t = self._trans_sigma(cov)
+            sig_r = self._rot_sigma(cov)
+            # tie only what the measurements already agree with: within the gate, widened to three
+            # sigma where the pair is measured worse than that
+            if dt > max(c.gate_m, 3.0 * sig_t) or dr > max(c.gate_rad, 3.0 * sig_r):
                 rel.reason = (f"relative pose {dt * 1000:.1f} mm / {math.degrees(dr):.2f} deg from design "
-                              f"(chi2 {chi2:.1f})")
+                              f"(1 sigma {sig_t * 1000:.1f} mm / {math.degrees(sig_r):.2f} deg)")
                 continue
             self._add(gtsam.BetweenFactorPose3(T(rel.a), T(rel.b), design, self.semantic_noise))
             rel.tied = True
             added += 1
         return added
+
+    def _deploy_check(self, rel: RelationState) -> DeployCheck:
+        """The B->T lift read from the tag *positions* in the structure frame, along the design's
+        lift axis: a tag's tilt is its least well measured quantity (a frontal view), and over the
+        0.5 m lever it would fake a lateral offset.  The relative rotation is checked against 3
+        sigma of what the pair's covariance allows."""
+        bottom, top = (rel.a, rel.b) if self._is_bottom(rel.a) else (rel.b, rel.a)
+        design_b = self.model.tags[bottom].structure_T_tag
+        pb, pt = self.tag_pose(bottom), self.tag_pose(top)
+        lift_in_b = design_b.rotation().unrotate(pt.translation() - pb.translation())
+        measured = Pose3(pb.rotation().between(pt.rotation()), lift_in_b)
+        cov = self._relative_covariance(bottom, top)
+        if cov is not None:
+            # the pair's position covariance, rotated from the bottom tag's estimated to its design frame
+            Rbd = design_b.rotation().matrix().T @ pb.rotation().matrix()
+            cov_t = Rbd @ cov[3:, 3:] @ Rbd.T
+            lift_sigma = float(math.sqrt(max(cov_t[1, 1], 0.0)))
+            lateral_sigma = float(math.sqrt(max(np.linalg.eigvalsh(cov_t[np.ix_([0, 2], [0, 2])]).max(), 0.0)))
+        else:
+            lift_sigma = lateral_sigma = 0.0
+        rot_tol = max(math.radians(2.0), 3.0 * self._rot_sigma(cov))
+        c = self.config
+        return deployable_check(measured, self.model.spacing_m, height_tol_m=max(c.height_tol_m, 3.0 * lift_sigma),
+                                lateral_tol_m=max(0.010, 3.0 * lateral_sigma), rotation_tol_rad=rot_tol,
+                                noise_m=lift_sigma)
+
+    @staticmethod
+    def _trans_sigma(cov: np.ndarray | None) -> float:
+        return 0.0 if cov is None else float(math.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)))
 
     @staticmethod
     def _rot_sigma(cov: np.ndarray | None) -> float:

@@ -5,8 +5,10 @@ pose times the designed tag-to-module transform (a deployable's bottom tag place
 only if the bottom one is unusable and the module is deployed).  It is compared with the design:
 - `unverified`: no usable tag (none seen, or every one rejected as displaced);
 - `flagged`: a deployable that is not fully deployed (or kinematically impossible), or a pose
-  outside the tolerance for its type (default 5 mm and 1 deg); for close-out members the reason
-  names the zone (final assembly / captured / outside capture, estimation/semantics.py);
+  outside the tolerance for its type (default 5 mm and 1 deg) by more than `guard_sigmas` of its
+  own 1-sigma uncertainty (so measurement noise alone does not flag a good module); for close-out
+  members the reason names the zone (final assembly / captured / outside capture,
+  estimation/semantics.py);
 - `ok` otherwise.
 """
 
@@ -27,6 +29,7 @@ from lab.structures.borg import BorgModel
 class Tolerance:
     position_m: float = 0.005
     rotation_rad: float = math.radians(1.0)
+    guard_sigmas: float = 2.0     # flag only when the excess over the tolerance is this many sigma
 
 
 @dataclass(frozen=True)
@@ -78,9 +81,14 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
     tag = usable[0]
     est = module_from_tag(model, module, tag, estimates[tag])
     dt, dr = pose_error(est, m.structure_T_module)
-    sigma = float(math.sqrt(np.trace(covs[tag][3:, 3:]))) if tag in covs else None
+    cov = covs.get(tag)
+    sigma = float(math.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))) if cov is not None else None
+    sigma_r = float(math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))) if cov is not None else 0.0
     note = f" (tag {', '.join(map(str, rejected_here))} rejected as displaced)" if rejected_here else ""
-    if dt <= tol.position_m and dr <= tol.rotation_rad:
+    # A deviation is a finding when it exceeds the tolerance by more than the guard band of its own
+    # uncertainty: noise alone must not flag a good module, a measured excess always does.
+    if (dt <= tol.position_m + tol.guard_sigmas * (sigma or 0.0)
+            and dr <= tol.rotation_rad + tol.guard_sigmas * sigma_r):
         return Verdict(module, "ok", note.strip(" ()"), est, dt, dr, sigma, tuple(usable))
     reason = (f"out of tolerance: {dt * 1000:.1f} mm (tolerance {tol.position_m * 1000:.1f} mm), "
               f"{math.degrees(dr):.2f} deg (tolerance {math.degrees(tol.rotation_rad):.2f} deg)")

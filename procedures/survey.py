@@ -49,6 +49,7 @@ class SurveyConfig:
         (0.0, 0.0, 0.0, 0.0, np.radians(6.0), 0.0),
     )
     views_per_step: int = 3
+    min_angle_separation_rad: float = np.radians(20.0)
     min_sightings: int = 2                # each new tag in at least this many views
 
 
@@ -165,28 +166,38 @@ class SurveyPlanner:
         need_count = {t: self.config.min_sightings for t in new}
         need_pair = {t: bool(related[t]) for t in new}
         need_together = len(new) > 1
+        seen_from: dict[int, list[float]] = {t: [] for t in new}
         chosen: list[View] = []
-        while len(chosen) < self.config.views_per_step:
-            def score(v: View) -> tuple[float, float]:
-                s = set(sight[v])
-                gain = sum(1.0 for t in new if need_count[t] > 0 and t in s)
-                gain += sum(2.0 for t in new if need_pair[t] and t in s and s.intersection(related[t]))
+
+        def fresh(t: int, v: View, distinct: bool) -> bool:
+            # a second sighting from another turntable angle triangulates the tag's depth
+            return not distinct or all(abs(v.turntable_rad - a) >= self.config.min_angle_separation_rad
+                                       for a in seen_from[t])
+
+        for distinct in (True, False):
+            while len(chosen) < self.config.views_per_step:
+                def score(v: View) -> tuple[float, float]:
+                    s = set(sight[v])
+                    gain = sum(1.0 for t in new if need_count[t] > 0 and t in s and fresh(t, v, distinct))
+                    gain += sum(2.0 for t in new if need_pair[t] and t in s and s.intersection(related[t]))
+                    if need_together and all(t in s for t in new):
+                        gain += 2.0
+                    # prefer views that also see many tags (better conditioned), then small motions
+                    return gain, len(s) * 0.01 - abs(v.turntable_rad) * 1e-3
+                best = max((v for v in self.candidates if v not in chosen), key=score, default=None)
+                if best is None or score(best)[0] <= 0:
+                    break
+                s = set(sight[best])
+                for t in new:
+                    if t in s:
+                        if fresh(t, best, distinct):
+                            need_count[t] -= 1
+                        seen_from[t].append(best.turntable_rad)
+                        if s.intersection(related[t]):
+                            need_pair[t] = False
                 if need_together and all(t in s for t in new):
-                    gain += 2.0
-                # prefer views that also see many tags (better conditioned), then small motions
-                return gain, len(s) * 0.01 - abs(v.turntable_rad) * 1e-3
-            best = max((v for v in self.candidates if v not in chosen), key=score, default=None)
-            if best is None or score(best)[0] <= 0:
-                break
-            chosen.append(best)
-            s = set(sight[best])
-            for t in new:
-                if t in s:
-                    need_count[t] -= 1
-                    if s.intersection(related[t]):
-                        need_pair[t] = False
-            if need_together and all(t in s for t in new):
-                need_together = False
+                    need_together = False
+                chosen.append(best)
         if not chosen:  # nothing sees the new tags: still look, from the face the module is on
             face = model.module_by_name[module].face
             chosen = [min(self.candidates, key=lambda v: (abs(v.turntable_rad - (face - 1) * np.pi / 2),
