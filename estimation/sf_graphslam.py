@@ -118,12 +118,24 @@ class SfGraphSlam:
         self._new_values.insert(key, value)
         self.initial.insert(key, value)
 
-    def update(self) -> None:
+    def update(self, snapshot: Iterable[int] = ()) -> dict[int, tuple[Pose3, np.ndarray | None]]:
         """Incremental solve (iSAM2) with what was added since the last update; then decide the
-        semantic relations that became decidable, and solve again with the factors that passed."""
+        semantic relations that became decidable, and solve again with the factors that passed.
+
+        Returns the estimates (pose, marginal covariance) of the `snapshot` tags as they were
+        *before* this update's semantic factors joined: verification reads those, so a module's own
+        design relations can never pull its measured deviation back to the design."""
         self._isam_step()
+        snap = {t: (self.tag_pose(t), self._marginal(t)) for t in snapshot if self.has_tag(t)}
         if self.config.semantic and self._decide_relations():
             self._isam_step()
+        return snap
+
+    def _marginal(self, tag: int) -> np.ndarray | None:
+        try:
+            return self.isam.marginalCovariance(T(tag))
+        except RuntimeError:
+            return None
 
     def _isam_step(self) -> None:
         self.isam.update(self._new_factors, self._new_values)

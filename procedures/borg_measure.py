@@ -29,6 +29,8 @@ class Measurement:
         self.rejected_tags: set[int] = set()
         self.placed: list[str] = []
         self._verdicts: dict[str, Verdict] = {}
+        # each module's tags as measured in its own step, before its semantic factors joined
+        self._measured: dict[str, dict[int, tuple[Pose3, np.ndarray | None]]] = {}
 
     # ---- detection ---------------------------------------------------------------------------
     def detect(self, image: np.ndarray, structure_T_camera: Pose3 | None = None) -> list[Detection]:
@@ -67,7 +69,7 @@ class Measurement:
         for v in views:
             structure_T_camera = Pose3(np.asarray(v["structure_T_camera"]))
             self.slam.add_view(structure_T_camera, self.detections_from_json(v["detections"]))
-        self.slam.update()
+        self._measured[module] = self.slam.update(snapshot=self.model.module_by_name[module].tags)
         self._eliminate()
 
     def _eliminate(self) -> None:
@@ -83,14 +85,9 @@ class Measurement:
     def verdict(self, module: str):
         from procedures.borg import ModuleResult
 
-        estimates = self.slam.tag_estimates()
-        covs = {}
-        for t in self.model.module_by_name[module].tags:
-            if t in estimates:
-                try:
-                    covs[t] = self.slam.tag_covariance(t)
-                except RuntimeError:
-                    pass
+        measured = self._measured.get(module, {})
+        estimates = {t: p for t, (p, _) in measured.items()}
+        covs = {t: c for t, (_, c) in measured.items() if c is not None}
         v = verify_module(self.model, module, estimates, covariances=covs, rejected=self.rejected_tags,
                           not_deployed=self.slam.not_deployed(), tolerances=self.tolerances)
         self._verdicts[module] = v
