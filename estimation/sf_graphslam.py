@@ -35,7 +35,8 @@ from lab.geometry import Pose3, Rot3
 from lab.structures.borg import BorgModel
 
 C = gtsam.symbol_shorthand.C   # camera views
-T = gtsam.symbol_shorthand.T   # tags
+_T = gtsam.symbol_shorthand.T  # tags: T(tag id + GENERATION * generation)
+GENERATION = 10_000             # a re-placed module's tags are new map elements
 
 
 @dataclass(frozen=True)
@@ -89,6 +90,24 @@ class SfGraphSlam:
         self.relations: dict[tuple[int, int], RelationState] = {
             (r.a, r.b): RelationState(r.a, r.b, r.kind) for r in model.relations}
         self.estimate = gtsam.Values()
+        self.generation: dict[int, int] = {}             # tag -> how many times it was re-placed
+
+    def key(self, tag: int) -> int:
+        return _T(tag + GENERATION * self.generation.get(tag, 0))
+
+    def replace_tags(self, tags: Iterable[int]) -> None:
+        """The module carrying these tags was re-placed or re-deployed: what was seen of it before
+        no longer describes it.  Its tags become new variables (the old ones keep their old
+        observations, tied to nothing new) and their relations are decided afresh."""
+        for t in tags:
+            self.generation[t] = self.generation.get(t, 0) + 1
+            self.tags.discard(t)
+            self.observations.pop(t, None)
+        for rel in self.relations.values():
+            if rel.a in tags or rel.b in tags:
+                rel.decided = rel.tied = False
+                rel.reason = ""
+                rel.deploy = None
 
     # ---- building the graph -------------------------------------------------------------------
     def add_view(self, structure_T_camera: Pose3, detections: Sequence[Detection]) -> int:
@@ -103,10 +122,10 @@ class SfGraphSlam:
             cov = 0.5 * (d.covariance + d.covariance.T)
             gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
             noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.config.huber_k), gauss)
-            self._add(gtsam.BetweenFactorPose3(C(k), T(d.tag_id), d.camera_T_tag, noise))
+            self._add(gtsam.BetweenFactorPose3(C(k), self.key(d.tag_id), d.camera_T_tag, noise))
             if d.tag_id not in self.tags:
                 self.tags.add(d.tag_id)
-                self._value(T(d.tag_id), structure_T_camera.compose(d.camera_T_tag))
+                self._value(self.key(d.tag_id), structure_T_camera.compose(d.camera_T_tag))
             self.observations[d.tag_id] = self.observations.get(d.tag_id, 0) + 1
         return k
 
@@ -133,7 +152,7 @@ class SfGraphSlam:
 
     def _marginal(self, tag: int) -> np.ndarray | None:
         try:
-            return self.isam.marginalCovariance(T(tag))
+            return self.isam.marginalCovariance(self.key(tag))
         except RuntimeError:
             return None
 
@@ -193,7 +212,7 @@ class SfGraphSlam:
                 rel.reason = (f"relative pose {dt * 1000:.1f} mm / {math.degrees(dr):.2f} deg from design "
                               f"(1 sigma {sig_t * 1000:.1f} mm / {math.degrees(sig_r):.2f} deg)")
                 continue
-            self._add(gtsam.BetweenFactorPose3(T(rel.a), T(rel.b), design, self.semantic_noise))
+            self._add(gtsam.BetweenFactorPose3(self.key(rel.a), self.key(rel.b), design, self.semantic_noise))
             rel.tied = True
             added += 1
         return added
@@ -237,8 +256,8 @@ class SfGraphSlam:
 
     def _relative_covariance(self, a: int, b: int) -> np.ndarray | None:
         try:
-            ca = self.isam.marginalCovariance(T(a))
-            cb = self.isam.marginalCovariance(T(b))
+            ca = self.isam.marginalCovariance(self.key(a))
+            cb = self.isam.marginalCovariance(self.key(b))
         except RuntimeError:
             return None
         # a's and b's errors mostly add (shared cameras correlate them; ignoring that is conservative)
@@ -248,13 +267,13 @@ class SfGraphSlam:
 
     # ---- results ---------------------------------------------------------------------------------
     def tag_pose(self, tag: int) -> Pose3:
-        return self.estimate.atPose3(T(tag))
+        return self.estimate.atPose3(self.key(tag))
 
     def has_tag(self, tag: int) -> bool:
-        return self.estimate.exists(T(tag))
+        return self.estimate.exists(self.key(tag))
 
     def tag_covariance(self, tag: int) -> np.ndarray:
-        return self.isam.marginalCovariance(T(tag))
+        return self.isam.marginalCovariance(self.key(tag))
 
     def camera_pose(self, k: int) -> Pose3:
         return self.estimate.atPose3(C(k))

@@ -151,6 +151,7 @@ class BorgProcedure:
                 return
             if self.bench.simulated:
                 self._redeploy_in_world(module.name)
+            self.measure.redeploy(module.name)
 
     def _home(self, run: RunContext) -> None:
         tt, st = self.bench.devices.turntable, self.bench.devices.stewart
@@ -257,6 +258,8 @@ class BorgProcedure:
         for v in self.views_done:
             by_step.setdefault((v["step"], v["attempt"]), []).append(v)
         for (step, attempt), views in sorted(by_step.items()):
+            if attempt > 1:
+                self.measure.redeploy(views[0]["module"])
             self.measure.add_step(views[0]["module"], views, replay=True)
         self.results = {k: ModuleResult(**v) for k, v in state.get("results", {}).items()}
         if self.bench.simulated:

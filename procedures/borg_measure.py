@@ -72,6 +72,13 @@ class Measurement:
         self._measured[module] = self.slam.update(snapshot=self.model.module_by_name[module].tags)
         self._eliminate()
 
+    def redeploy(self, module: str) -> None:
+        """The operator re-placed / re-deployed `module`: measure it afresh."""
+        tags = self.model.module_by_name[module].tags
+        self.slam.replace_tags(tags)
+        self.rejected_tags.difference_update(tags)
+        self._measured.pop(module, None)
+
     def _eliminate(self) -> None:
         estimates = self.slam.tag_estimates()
         explained = {}
