@@ -198,6 +198,12 @@ class TagDetector:
         cov = self._covariance(best, size, sides.mean(), best_e)
         return Detection(tid, corners, best, cov, best_e, float(ratio), ambiguous, size)
 
+    def measurement_covariance(self, camera_T_tag: Pose3, size_m: float, side_px: float,
+                               reprojection_px: float = 0.0) -> np.ndarray:
+        """The covariance model alone, for a tag seen at `camera_T_tag` with sides of `side_px`
+        (studies draw synthetic measurements from the same model the detector reports)."""
+        return self._covariance(camera_T_tag, size_m, side_px, reprojection_px)
+
     def _covariance(self, camera_T_tag: Pose3, size: float, side_px: float, reproj_px: float) -> np.ndarray:
         f = 0.5 * (self.K[0, 0] + self.K[1, 1])
         s_px = max(self.config.corner_sigma_px, reproj_px)

@@ -46,7 +46,11 @@ class SlamConfig:
     camera_sigma_rad: float = math.radians(0.05)
     semantic_sigma_m: float = 0.0005         # S: how well a fully assembled module matches its design
     semantic_sigma_rad: float = math.radians(0.05)
-    huber_k: float = 1.345
+    huber_k: float | None = 1.345           # None: plain Gaussian observation factors (the paper's)
+    # Q: None takes each detection's own covariance (the detector's model); a value replaces it
+    # with a fixed diagonal (studies: the paper's Q = diag(1 m^2 x3, 0.1 rad^2 x3) is 1 m / 0.316 rad)
+    observation_sigma_m: float | None = None
+    observation_sigma_rad: float | None = None
     gate_m: float = 0.005                    # a related pair farther than this from its design is not tied
     gate_rad: float = math.radians(1.0)     # widened to 3 sigma where the rotation is measured worse
     height_tol_m: float = 0.005              # deployable fully deployed within this of its design lift
@@ -76,6 +80,8 @@ class SfGraphSlam:
             np.array([c.camera_sigma_rad] * 3 + [c.camera_sigma_m] * 3))
         self.semantic_noise = gtsam.noiseModel.Diagonal.Sigmas(
             np.array([c.semantic_sigma_rad] * 3 + [c.semantic_sigma_m] * 3))
+        self.fixed_observation_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(
+            [c.observation_sigma_rad or 0.0] * 3 + [c.observation_sigma_m or 0.0] * 3))
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(c.relinearize_threshold)
         params.relinearizeSkip = 1
@@ -116,12 +122,17 @@ class SfGraphSlam:
         self.n_views += 1
         self._add(gtsam.PriorFactorPose3(C(k), structure_T_camera, self.camera_noise))
         self._value(C(k), structure_T_camera)
+        c = self.config
         for d in detections:
             if d.tag_id not in self.model.tags:
                 continue
-            cov = 0.5 * (d.covariance + d.covariance.T)
-            gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
-            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.config.huber_k), gauss)
+            if c.observation_sigma_m is not None or c.observation_sigma_rad is not None:
+                gauss = self.fixed_observation_noise
+            else:
+                cov = 0.5 * (d.covariance + d.covariance.T)
+                gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
+            noise = (gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k), gauss)
+                     if c.huber_k else gauss)
             self._add(gtsam.BetweenFactorPose3(C(k), self.key(d.tag_id), d.camera_T_tag, noise))
             if d.tag_id not in self.tags:
                 self.tags.add(d.tag_id)
