@@ -222,6 +222,11 @@ def render_tags(
     img *= 255.0
     if noise_sigma > 0:
         g = rng if rng is not None else np.random.default_rng()
-        img += g.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_sigma)
+        # cv2.randn is ~4x faster than numpy's normal for a full frame; seeding it from `rng`
+        # keeps the image a function of the inputs (it does reseed OpenCV's global RNG).
+        noise = np.empty(img.shape, np.float32)
+        cv2.setRNGSeed(int(g.integers(2**31 - 1)))
+        cv2.randn(noise, 0.0, float(noise_sigma))
+        img += noise
     out = np.clip(img, 0, 255).astype(np.uint8)
     return cv2.cvtColor(out, cv2.COLOR_GRAY2BGR)
