@@ -199,6 +199,8 @@ class BorgProcedure:
         rec.log_metric("slam/update_s", solve_s, "s")
         result = self.measure.verdict(name)
         self._log_estimates(run)
+        for pose, cov in self.measure.camera_estimates():
+            rec.log_pose(topics.estimate_topic("camera"), pose, "structure", covariance6x6=cov)
         if self.bench.simulated:
             self._truth_errors(result)
         return result

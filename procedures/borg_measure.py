@@ -66,9 +66,10 @@ class Measurement:
     def add_step(self, module: str, views: list[dict[str, Any]], replay: bool = False) -> None:
         if module not in self.placed:
             self.placed.append(module)
+        self.last_views = []
         for v in views:
             structure_T_camera = Pose3(np.asarray(v["structure_T_camera"]))
-            self.slam.add_view(structure_T_camera, self.detections_from_json(v["detections"]))
+            self.last_views.append(self.slam.add_view(structure_T_camera, self.detections_from_json(v["detections"])))
         self._measured[module] = self.slam.update(snapshot=self.model.module_by_name[module].tags)
         self._eliminate()
 
@@ -101,6 +102,19 @@ class Measurement:
         return ModuleResult(module, v.verdict, v.reason, deviation_m=v.deviation_m, deviation_rad=v.deviation_rad,
                             sigma_position_m=v.sigma_m, tags_seen=[t for t in self.model.module_by_name[module].tags
                                                                    if t in estimates])
+
+    def camera_estimates(self) -> list[tuple[Pose3, np.ndarray | None]]:
+        """The estimated camera poses (structure frame) of the last step's views, with covariances."""
+        from estimation.sf_graphslam import C
+
+        out = []
+        for k in getattr(self, "last_views", []):
+            try:
+                cov = self.slam.isam.marginalCovariance(C(k))
+            except RuntimeError:
+                cov = None
+            out.append((self.slam.camera_pose(k), cov))
+        return out
 
     def module_estimate(self, module: str) -> Pose3 | None:
         v = self._verdicts.get(module)
