@@ -96,6 +96,8 @@ class SfGraphSlam:
         self.relations: dict[tuple[int, int], RelationState] = {
             (r.a, r.b): RelationState(r.a, r.b, r.kind) for r in model.relations}
         self.estimate = gtsam.Values()
+        self._batch_solved = False                       # the estimate came from solve_batch, not iSAM2
+        self._batch_marginals: gtsam.Marginals | None = None
         self.generation: dict[int, int] = {}             # tag -> how many times it was re-placed
 
     def key(self, tag: int) -> int:
@@ -163,8 +165,8 @@ class SfGraphSlam:
 
     def _marginal(self, tag: int) -> np.ndarray | None:
         try:
-            return self.isam.marginalCovariance(self.key(tag))
-        except RuntimeError:
+            return self.tag_covariance(tag)
+        except (RuntimeError, IndexError):
             return None
 
     def _isam_step(self) -> None:
@@ -173,6 +175,8 @@ class SfGraphSlam:
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self.estimate = self.isam.calculateEstimate()
+        self._batch_solved = False
+        self._batch_marginals = None
 
     def solve_batch(self, max_iterations: int = 100) -> gtsam.Values:
         """Levenberg–Marquardt over the whole graph from the current initial values (studies)."""
@@ -181,6 +185,9 @@ class SfGraphSlam:
         params.setRelativeErrorTol(1e-10)
         params.setAbsoluteErrorTol(1e-12)
         self.estimate = gtsam.LevenbergMarquardtOptimizer(self.graph, self.initial, params).optimize()
+        # marginals must now come from this estimate (iSAM2 has not seen these factors)
+        self._batch_solved = True
+        self._batch_marginals = None
         return self.estimate
 
     def decide_relations_batch(self) -> int:
@@ -266,15 +273,26 @@ class SfGraphSlam:
         return m.tags[0] == tag
 
     def _relative_covariance(self, a: int, b: int) -> np.ndarray | None:
+        """Covariance of tag_a_T_tag_b (tangent of b's frame) from the pair's *joint* marginal.
+        Tags seen from the same views share those cameras' pose errors, and that shared part
+        cancels in their relative pose: summing the two marginals instead counted it twice, which
+        under a noisy camera pose (the paper's 5 cm) widened the gate and the deployment check to
+        +-12 cm, so a 10 cm short deployment passed as deployed."""
+        ka, kb = self.key(a), self.key(b)
         try:
-            ca = self.isam.marginalCovariance(self.key(a))
-            cb = self.isam.marginalCovariance(self.key(b))
-        except RuntimeError:
+            if self._batch_solved:
+                if self._batch_marginals is None:
+                    self._batch_marginals = gtsam.Marginals(self.graph, self.estimate)
+                joint = self._batch_marginals.jointMarginalCovariance([ka, kb])
+            else:
+                joint = self.isam.jointMarginalCovariance([ka, kb])
+            saa, sbb, sab = joint.at(ka, ka), joint.at(kb, kb), joint.at(ka, kb)
+        except (RuntimeError, IndexError):
             return None
-        # a's and b's errors mostly add (shared cameras correlate them; ignoring that is conservative)
         rel = self.tag_pose(a).between(self.tag_pose(b))
-        Ad = rel.inverse().AdjointMap()
-        return Ad @ ca @ Ad.T + cb + np.eye(6) * 1e-12
+        Ad = rel.inverse().AdjointMap()          # d(rel) = xi_b - Ad xi_a
+        cov = Ad @ saa @ Ad.T + sbb - Ad @ sab - sab.T @ Ad.T
+        return 0.5 * (cov + cov.T) + np.eye(6) * 1e-12
 
     # ---- results ---------------------------------------------------------------------------------
     def tag_pose(self, tag: int) -> Pose3:
@@ -284,6 +302,11 @@ class SfGraphSlam:
         return self.estimate.exists(self.key(tag))
 
     def tag_covariance(self, tag: int) -> np.ndarray:
+        """Marginal covariance of a tag pose from the solver that made the current estimate."""
+        if self._batch_solved:
+            if self._batch_marginals is None:
+                self._batch_marginals = gtsam.Marginals(self.graph, self.estimate)
+            return self._batch_marginals.marginalCovariance(self.key(tag))
         return self.isam.marginalCovariance(self.key(tag))
 
     def camera_pose(self, k: int) -> Pose3:
