@@ -47,6 +47,12 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as exc:
         print(f"lab: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader went away (`lab ... | head`): not an error of ours; silence the final flush
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     return int(rc or 0)
 
 
