@@ -211,9 +211,11 @@ def render_tags(
         alpha = cv2.warpPerspective(
             np.ones((n, n), np.float32), H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0
         )
+        alpha[alpha > 0.999] = 1.0  # warp weights leave 1 - 1e-4 inside: no see-through tags
         roi = img[y0:y1, x0:x1]
         shade = black + (white - black) * patch
-        roi += alpha * (shade - roi)
+        roi *= 1.0 - alpha  # (not roi += alpha*(shade-roi): that leaves float dust where alpha == 1)
+        roi += alpha * shade
 
     if canvas.map_x is not None:
         img = cv2.remap(img, canvas.map_x, canvas.map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
@@ -228,5 +230,5 @@ def render_tags(
         cv2.setRNGSeed(int(g.integers(2**31 - 1)))
         cv2.randn(noise, 0.0, float(noise_sigma))
         img += noise
-    out = np.clip(img, 0, 255).astype(np.uint8)
+    out = np.clip(np.rint(img), 0, 255).astype(np.uint8)  # round, not truncate: 110 must stay 110
     return cv2.cvtColor(out, cv2.COLOR_GRAY2BGR)
