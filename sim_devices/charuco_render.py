@@ -38,7 +38,8 @@ import numpy as np
 from lab.geometry import Pose3, Rot3
 from sim_devices.render import _canvas  # the shared ideal-canvas + distortion remap tables
 
-__all__ = ["render_charuco", "charuco_corners_px", "calibration_views", "board_size_m", "PAPER_MARGIN_SQUARES"]
+__all__ = ["render_charuco", "charuco_corners_px", "calibration_views", "calibration_session", "board_size_m",
+           "PAPER_MARGIN_SQUARES"]
 
 # White paper around the printed squares, in squares (a printed board always has some).
 PAPER_MARGIN_SQUARES = 0.5
@@ -254,3 +255,22 @@ def calibration_views(
             raise ValueError(f"could not place view {i} of the board inside a {width}x{height} frame; "
                              f"is the board too big or too small for this camera?")
     return views
+
+
+def calibration_session(
+    K: np.ndarray,
+    dist: Sequence[float] | np.ndarray | None,
+    width: int,
+    height: int,
+    board: cv2.aruco.CharucoBoard,
+    n: int,
+    rng: np.random.Generator,
+    *,
+    blur_sigma_px: float = 0.6,
+    noise_sigma: float = 2.0,
+) -> list[tuple[Pose3, np.ndarray]]:
+    """`n` views of the board as `calibration_views` places them, rendered: (camera_T_board, BGR
+    image) each."""
+    views = calibration_views(K, dist, width, height, board, n, rng)
+    return [(v, render_charuco(K, dist, width, height, board, v, blur_sigma_px=blur_sigma_px,
+                               noise_sigma=noise_sigma, rng=rng)) for v in views]
