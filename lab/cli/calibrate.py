@@ -1,0 +1,239 @@
+"""`lab calibrate camera` (ChArUco intrinsic calibration) and `lab calibrate board` (a printable
+board).  docs/calibration.md; the work happens in procedures/calibrate.py."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+DEFAULT_OUT = "camera_calibration.json"
+# procedures.calibrate holds the defaults; it imports OpenCV, so `lab --help` must not import it.
+# These strings only describe them (a test checks they agree).
+_HELP_BOARD = "9x6:30:22:DICT_5X5_100"
+_HELP_MIN_CORNERS = 10
+_HELP_MIN_FRAMES = 8
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("calibrate", help="calibrate a device (camera intrinsics with a ChArUco board)")
+    csub = p.add_subparsers(dest="what", metavar="WHAT")
+    csub.required = True
+
+    c = csub.add_parser(
+        "camera", help="camera intrinsics from views of a ChArUco board: live, from image files, or simulated",
+        description="Camera intrinsic calibration with a ChArUco board. Frames come from the rig's camera "
+                    "(default; the operator is told where to hold the board), from image files (--frames DIR), or "
+                    "from the simulated camera's true model (--sim N, compared with the truth). Writes the "
+                    "intrinsics file the camera driver reads (docs/hardware.md).")
+    c.add_argument("--rig", metavar="FILE", help="rig file (default: the simulated bench, lab/rigs/sim.toml)")
+    src = c.add_mutually_exclusive_group()
+    src.add_argument("--frames", metavar="DIR", help="calibrate from the image files in DIR (png, jpg, bmp, tif)")
+    src.add_argument("--sim", type=int, metavar="N",
+                     help="render N views of the board with the rig's simulated true camera ([sim.camera])")
+    c.add_argument("--board", metavar="SPEC",
+                   help=f"the printed board, COLSxROWS:SQUARE_MM:MARKER_MM[:DICT][:legacy] (default {_HELP_BOARD})")
+    c.add_argument("--out", metavar="FILE", default=DEFAULT_OUT,
+                   help=f"intrinsics file to write (default {DEFAULT_OUT}); point the rig's [camera] calibration at it")
+    c.add_argument("--force", action="store_true", help="replace --out if it exists")
+    c.add_argument("--auto", action="store_true",
+                   help="live: no prompts, grab a frame every --interval-s while the operator moves the board")
+    c.add_argument("--record", metavar="FILE.mcap", help="record frames, detections and the result to an MCAP file")
+    c.add_argument("--count", type=int, default=15, metavar="N", help="live: usable views to collect (default 15)")
+    c.add_argument("--interval-s", type=float, default=1.0, metavar="S", help="live --auto: seconds between grabs")
+    c.add_argument("--min-corners", type=int, metavar="N",
+                   help=f"reject a frame with fewer chessboard corners (default {_HELP_MIN_CORNERS})")
+    c.add_argument("--min-frames", type=int, metavar="N",
+                   help=f"refuse to calibrate from fewer usable views (default {_HELP_MIN_FRAMES})")
+    c.add_argument("--fit-k3", action="store_true", help="also fit k3 (wide-angle lenses); default: k3 = 0")
+    c.add_argument("--seed", type=int, default=None, help="--sim: seed of the views and noise (default: the rig's)")
+    c.add_argument("--save-frames", metavar="DIR", help="--sim: also write the rendered frames to DIR as PNG")
+    c.add_argument("--json", action="store_true", help="print the result as JSON instead of the report")
+    c.set_defaults(func=_camera)
+
+    b = csub.add_parser("board", help="write a printable ChArUco board image (PNG or PDF at true scale)")
+    b.add_argument("--board", metavar="SPEC", help=f"board spec (default {_HELP_BOARD})")
+    b.add_argument("--out", metavar="FILE", required=True, help="output file, .png or .pdf")
+    b.add_argument("--dpi", type=int, default=300, help="print resolution (default 300)")
+    b.add_argument("--margin-mm", type=float, default=10.0, help="white margin around the squares (default 10 mm)")
+    b.set_defaults(func=_board)
+
+
+# ---- lab calibrate camera ---------------------------------------------------------------------
+
+
+def _camera(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from drivers.camera import Intrinsics, save_calibration
+    from lab.config import load_rig
+    from lab.errors import UserError
+    from procedures import calibrate as cal
+    from procedures.calibrate import CalibrationSession, capture_live, parse_board, read_frames
+
+    board = parse_board(args.board or cal.DEFAULT_BOARD)
+    min_corners = cal.DEFAULT_MIN_CORNERS if args.min_corners is None else args.min_corners
+    min_frames = cal.DEFAULT_MIN_FRAMES if args.min_frames is None else args.min_frames
+    out = Path(args.out)
+    if out.is_dir():
+        raise UserError(f"--out {out} is a directory; give a file name such as {out / DEFAULT_OUT}")
+    if out.exists() and not args.force:
+        raise UserError(f"--out {out} already exists; choose another file or add --force to replace it")
+    if args.sim is not None and not 1 <= args.sim <= 500:
+        raise UserError(f"--sim {args.sim}: the number of simulated views must be 1..500")
+    if args.save_frames and args.sim is None:
+        raise UserError("--save-frames writes simulated frames; use it with --sim N")
+    if args.interval_s < 0:
+        raise UserError(f"--interval-s {args.interval_s}: must be 0 or more seconds")
+    rig = load_rig(args.rig)
+    camera_name = rig.camera.name if rig.camera else "camera"
+
+    truth: Intrinsics | None = None
+    frames: list[tuple[str, Any]] | None = None
+    if args.sim is not None:
+        truth, frames = _sim_frames(rig, board, args.sim, args.seed, args.save_frames)
+    elif args.frames:
+        frames = read_frames(args.frames)
+    else:
+        if rig.camera is None:
+            raise UserError(f"rig {rig.source} has no [camera]; give --frames DIR or a rig with a camera")
+        if rig.simulated:
+            raise UserError(f"rig {rig.source} is simulated: its camera shows the BORG bench, not a board; "
+                            f"use --sim N to calibrate from simulated board views, or --frames DIR")
+
+    params = {k: v for k, v in vars(args).items() if k not in ("func", "command", "what")}
+    params.update(board=board.text(), min_corners=min_corners, min_frames=min_frames)
+    say = (lambda s: print(s, file=sys.stderr)) if args.json else print
+
+    def run(recorder: Any) -> Any:
+        session = CalibrationSession(board, min_corners=min_corners, recorder=recorder, camera=camera_name)
+        if frames is not None:
+            for label, image in frames:
+                d = session.add(label, image)
+                if not d.usable:
+                    say(f"{label}: not used: {d.reason}")
+        else:
+            from drivers.camera import Camera
+            from lab.comms import null_sink
+            from procedures.runner import Operator
+
+            # The old calibration is not loaded: it may be for another resolution, the reason to recalibrate.
+            cam = Camera.open(replace(rig.camera, calibration=None), recorder.comms_sink if recorder else null_sink)
+            try:
+                say(f"camera {camera_name} at {rig.camera.url}: {cam.identify()}; board {board.text()} "
+                    f"({board.size_m[0] * 1000:.0f} x {board.size_m[1] * 1000:.0f} mm)")
+                capture_live(session, cam, Operator(args.auto, recorder), args.count, interval_s=args.interval_s,
+                             say=say)
+            finally:
+                cam.close()
+        result = session.finish(fit_k3=args.fit_k3, min_frames=min_frames, truth=truth)
+        save_calibration(out, result.intrinsics, camera=camera_name)
+        if recorder is not None:
+            recorder.log_text("info", f"wrote {out}")
+        return result
+
+    if args.record:
+        from lab.recorder import RunRecorder
+
+        with RunRecorder(args.record, "calibrate_camera", params, rig=rig.to_dict(), argv=sys.argv) as rec:
+            result = run(rec)
+    else:
+        result = run(None)
+
+    if args.json:
+        print(json.dumps({"out": str(out), **result.to_json()}, indent=2))
+    else:
+        for line in result.report():
+            print(line)
+        print(f"wrote {out}")
+        print(_rig_hint(rig, out))
+    return 0
+
+
+def _sim_frames(rig: Any, board: Any, n: int, seed: int | None, save_dir: str | None):
+    import cv2
+    import numpy as np
+
+    from drivers.camera import Intrinsics
+    from lab.errors import UserError
+    from sim_devices.charuco_render import calibration_session
+
+    if rig.sim is None or rig.camera is None:
+        raise UserError(f"--sim needs a simulated rig with a camera ([sim.camera]); rig {rig.source} has "
+                        f"{'no [sim] table' if rig.sim is None else 'no [camera]'}")
+    c = rig.sim.camera
+    K = np.array([[c["fx_px"], 0.0, c["cx_px"]], [0.0, c["fy_px"], c["cy_px"]], [0.0, 0.0, 1.0]])
+    truth = Intrinsics(K, np.asarray(c["dist"], dtype=float), int(c["width_px"]), int(c["height_px"]))
+    rng = np.random.default_rng([rig.sim.seed if seed is None else seed, 0xCA1])
+    try:
+        views = calibration_session(K, truth.dist, truth.width_px, truth.height_px, board.make(), n, rng,
+                                    blur_sigma_px=c["blur_px"], noise_sigma=c["pixel_noise"])
+    except ValueError as exc:
+        raise UserError(f"board {board.text()} with the simulated camera: {exc}") from None
+    frames = [(f"sim-{i:03d}", img) for i, (_pose, img) in enumerate(views)]
+    if save_dir:
+        d = Path(save_dir)
+        d.mkdir(parents=True, exist_ok=True)
+        for label, img in frames:
+            cv2.imwrite(str(d / f"{label}.png"), img)
+    return truth, frames
+
+
+def _rig_hint(rig: Any, out: Path) -> str:
+    if rig.camera is not None and rig.camera.calibration is not None and \
+            rig.camera.calibration.resolve() == out.resolve():
+        return f"the rig's [camera] calibration already points at {out}"
+    where = Path(rig.source).parent if Path(rig.source).exists() else Path.cwd()
+    try:
+        rel = os.path.relpath(out.resolve(), where.resolve())
+    except ValueError:
+        rel = str(out.resolve())
+    return f"to use it, set in the rig file's [camera] table: calibration = \"{rel}\"  (relative to the rig file)"
+
+
+# ---- lab calibrate board ----------------------------------------------------------------------
+
+
+def _board(args: argparse.Namespace) -> int:
+    import cv2
+    import numpy as np
+
+    from lab.errors import UserError
+    from procedures.calibrate import DEFAULT_BOARD, parse_board
+
+    board = parse_board(args.board or DEFAULT_BOARD)
+    out = Path(args.out)
+    if out.suffix.lower() not in (".png", ".pdf"):
+        raise UserError(f"--out {out}: write a .png or a .pdf")
+    if not 72 <= args.dpi <= 2400:
+        raise UserError(f"--dpi {args.dpi}: must be 72..2400")
+    if not 0 <= args.margin_mm <= 100:
+        raise UserError(f"--margin-mm {args.margin_mm}: must be 0..100 mm")
+    px_per_mm = args.dpi / 25.4
+    w_mm, h_mm = (s * 1000 for s in board.size_m)
+    img = board.make().generateImage((round(w_mm * px_per_mm), round(h_mm * px_per_mm)), marginSize=0, borderBits=1)
+    m = round(args.margin_mm * px_per_mm)
+    caption_px = max(round(6 * px_per_mm), 12)
+    img = cv2.copyMakeBorder(img, m, m + caption_px, m, m, cv2.BORDER_CONSTANT, value=255)
+    text = f"ChArUco {board.text()}  -  print at 100 %: a square must measure {board.square_m * 1000:g} mm"
+    scale = caption_px / 2.0 / 22.0
+    cv2.putText(img, text, (m, img.shape[0] - m - caption_px // 3), cv2.FONT_HERSHEY_SIMPLEX, scale, 0,
+                max(1, round(scale * 1.5)), cv2.LINE_AA)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.image
+
+    # imsave stores the resolution (PNG pHYs) or sizes the page (PDF) so the print comes out to scale.
+    matplotlib.image.imsave(out, np.asarray(img), cmap="gray", vmin=0, vmax=255, dpi=args.dpi)
+    page_w, page_h = img.shape[1] / px_per_mm, img.shape[0] / px_per_mm
+    print(f"wrote {out}: board {board.text()}, {w_mm:.0f} x {h_mm:.0f} mm of squares, page {page_w:.0f} x "
+          f"{page_h:.0f} mm at {args.dpi} dpi")
+    if max(page_w, page_h) > 297 or min(page_w, page_h) > 210:
+        print("note: larger than A4; print on a larger sheet or choose smaller squares")
+    print(f"check after printing: {board.cols} squares must span {w_mm:.1f} mm; glue it flat on a rigid board")
+    return 0
