@@ -298,7 +298,9 @@ def calibrate(detections: Sequence[Detection], board: BoardSpec, *, fit_k3: bool
         raise UserError(f"--min-frames {min_frames}: a calibration needs at least 3 views of the board")
     if not detections:
         raise NotEnoughViews("no frames to calibrate from")
-    sizes = {(d.width_px, d.height_px) for d in detections}
+    sizes = {(d.width_px, d.height_px) for d in detections if d.width_px}   # 0: the frame did not decode
+    if not sizes:
+        raise NotEnoughViews(f"none of the {len(detections)} frames could be read as an image")
     if len(sizes) > 1:
         raise UserError(f"frames of different sizes ({', '.join(f'{w}x{h}' for w, h in sorted(sizes))}): "
                         f"one calibration is for one image size")
@@ -441,16 +443,13 @@ class CalibrationSession:
 
     def finish(self, *, fit_k3: bool = False, min_frames: int = DEFAULT_MIN_FRAMES,
                truth: Intrinsics | None = None) -> CalibrationResult:
-        real = [d for d in self.detections if d.width_px]
-        if not real and self.detections:
-            raise NotEnoughViews(f"none of the {len(self.detections)} frames could be read as an image")
         if self.recorder is None:
-            return self._finish(real, fit_k3, min_frames, truth)
+            return self._finish(fit_k3, min_frames, truth)
         from lab.recorder import topics
 
         self._steps += 1
         with self.recorder.step("calibrate", self._steps, {"fit_k3": fit_k3, "min_frames": min_frames}):
-            result = self._finish(real, fit_k3, min_frames, truth)
+            result = self._finish(fit_k3, min_frames, truth)
             i = result.intrinsics
             self.recorder.log_calibration(topics.CAMERA_CALIBRATION, i.K, i.dist, i.width_px, i.height_px,
                                           self.camera)
@@ -460,10 +459,8 @@ class CalibrationSession:
                 self.recorder.log_text("warning", w)
         return result
 
-    def _finish(self, real: list[Detection], fit_k3: bool, min_frames: int, truth: Intrinsics | None):
-        unread = [d for d in self.detections if not d.width_px]
-        result = calibrate(real, self.board, fit_k3=fit_k3, min_frames=min_frames)
-        result.views = [ViewResult(d.label, 0, "rejected", d.reason) for d in unread] + result.views
+    def _finish(self, fit_k3: bool, min_frames: int, truth: Intrinsics | None) -> CalibrationResult:
+        result = calibrate(self.detections, self.board, fit_k3=fit_k3, min_frames=min_frames)
         if truth is not None:
             result.truth = compare_intrinsics(result.intrinsics, truth)
         return result
