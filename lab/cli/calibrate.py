@@ -189,9 +189,12 @@ def _rig_hint(rig: Any, out: Path) -> str:
     where = Path(rig.source).parent if Path(rig.source).exists() else Path.cwd()
     try:
         rel = os.path.relpath(out.resolve(), where.resolve())
-    except ValueError:
-        rel = str(out.resolve())
-    return f"to use it, set in the rig file's [camera] table: calibration = \"{rel}\"  (relative to the rig file)"
+    except ValueError:   # another drive
+        rel = ".."
+    if rel.startswith(".."):
+        rel = str(out.resolve())   # a path climbing out of the rig's folder reads better absolute
+    return (f"to use it, set in the rig file's [camera] table: calibration = \"{rel}\"  "
+            f"(a relative path is taken from the rig file's folder)")
 
 
 # ---- lab calibrate board ----------------------------------------------------------------------
