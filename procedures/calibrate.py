@@ -285,8 +285,13 @@ def _fit(views: Sequence[Detection], size: tuple[int, int], flags: int):
     obj = [v.object_points.astype(np.float32) for v in views]
     img = [v.corners.astype(np.float32).reshape(-1, 1, 2) for v in views]
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    rms, K, dist, rvecs, _tvecs, std_in, _std_ex, per_view = cv2.calibrateCameraExtended(
-        obj, img, size, None, None, flags=flags, criteria=crit)
+    try:
+        rms, K, dist, rvecs, _tvecs, std_in, _std_ex, per_view = cv2.calibrateCameraExtended(
+            obj, img, size, None, None, flags=flags, criteria=crit)
+    except cv2.error as exc:
+        msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise UserError(f"OpenCV could not calibrate from these {len(views)} views ({msg}); "
+                        f"take views from more varied positions and angles") from None
     return float(rms), K, dist.ravel(), rvecs, std_in.ravel(), per_view.ravel()
 
 
@@ -321,11 +326,16 @@ def calibrate(detections: Sequence[Detection], board: BoardSpec, *, fit_k3: bool
 
     flags = 0 if fit_k3 else cv2.CALIB_FIX_K3
     dropped: list[ViewResult] = []
+    stuck = ""
     while True:
         rms, K, dist, rvecs, std_in, per_view = _fit(usable, size, flags)
         limit = max(REJECT_FLOOR_PX, REJECT_FACTOR * float(np.median(per_view)))
         worst = int(np.argmax(per_view))
-        if per_view[worst] <= limit or len(usable) <= min_frames:
+        if per_view[worst] <= limit:
+            break
+        if len(usable) <= min_frames:
+            stuck = f"view {usable[worst].label} stands out ({per_view[worst]:.2f} px, limit {limit:.2f} px) " \
+                    f"but dropping it would leave fewer than {min_frames} views: take more views"
             break
         d = usable.pop(worst)
         dropped.append(ViewResult(d.label, d.n_corners, "dropped",
@@ -339,7 +349,7 @@ def calibrate(detections: Sequence[Detection], board: BoardSpec, *, fit_k3: bool
     std = {n: float(std_in[i]) if i < len(std_in) else 0.0 for i, n in enumerate(PARAM_NAMES)}
     cov = coverage(usable, *size)
 
-    warnings: list[str] = []
+    warnings: list[str] = [stuck] if stuck else []
     if rms > 1.0:
         warnings.append(f"RMS reprojection error {rms:.2f} px is high (expect well under 0.5 px): check focus, "
                         f"motion blur, a board that is not flat, or a wrong --board size")

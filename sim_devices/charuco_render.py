@@ -15,9 +15,11 @@ counterpart of `sim_devices.render.render_tags`, and built the same way:
 4. Gaussian blur (defocus), Gaussian pixel noise, 8-bit BGR.
 
 `calibration_views` picks the board poses an operator would be told to show: the board near every
-part of the frame (centre, edges, corners, where distortion is strongest), tilted 15-40 degrees
+part of the frame (centre, edges, corners, where distortion is strongest), tilted 10-35 degrees
 about both axes (a fronto-parallel board cannot separate focal length from distance), rolled in
-the plane and at a spread of distances.
+the plane and at a spread of distances, never seen more obliquely than 60 degrees (beyond that
+OpenCV's ChArUco corners go wrong by pixels, and an operator would not hold it so).
+`calibration_session` renders such a set.
 
 Board frame (OpenCV's): origin at the board's top-left corner as printed, x right, y down, z into
 the board, in metres; `camera_T_board` is the board's pose in the OpenCV camera frame.

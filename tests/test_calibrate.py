@@ -151,6 +151,10 @@ def test_a_bad_view_is_dropped_and_the_rest_still_calibrate():
     assert status["s4"] == "dropped" and sum(s == "used" for s in status.values()) == 11
     assert "stands out" in next(v.reason for v in r.views if v.label == "s4")
     assert abs(r.intrinsics.K[0, 0] / truth.K[0, 0] - 1) < 0.005 and r.rms_px < 0.3
+    # Too few views to spare one: it stays, and the operator is told.
+    kept = calibrate(dets, BOARD, min_frames=12)
+    assert all(v.status == "used" for v in kept.views)
+    assert any("s4 stands out" in w and "take more views" in w for w in kept.warnings)
 
 
 def test_frontal_views_in_the_middle_draw_warnings():
