@@ -11,7 +11,7 @@ Factors, a few lines per type below:
   for related tags (Table 1).  A semantic factor joins the graph only once the measured relative
   pose, from the graph without it, agrees with the design: a deployable pair must be kinematically
   valid and fully deployed (estimation/semantics.py); any other pair within `gate_m` / `gate_rad`
-  of its design (widened to 3 sigma where the pair is measured worse).  So the design can sharpen an estimate the measurements already agree
+  of its design (widened to the noise's chi-square quantile at `gate_alpha` where the pair is measured worse).  So the design can sharpen an estimate the measurements already agree
   with, and never pull a real deviation back to the design: a failed gate drops that factor
   (the pair reverts to GraphSLAM) and is reported.
 GraphSLAM is the same graph with `semantic=False`.
@@ -52,7 +52,11 @@ class SlamConfig:
     observation_sigma_m: float | None = None
     observation_sigma_rad: float | None = None
     gate_m: float = 0.005                    # a related pair farther than this from its design is not tied
-    gate_rad: float = math.radians(1.0)     # widened to 3 sigma where the rotation is measured worse
+    gate_rad: float = math.radians(1.0)     # widened by the noise where the pair is measured worse
+    # The gates and the deployment check widen to the chi-square quantile of their dimension at this
+    # false-alarm probability (1e-4: 3.7 sigma along one axis, 4.3 on a 2-D norm, 4.6 on a 3-D norm):
+    # a good pair is wrongly left untied -- a good deployable wrongly flagged -- once in 10^4 checks.
+    gate_alpha: float = 1e-4
     height_tol_m: float = 0.005              # deployable fully deployed within this of its design lift
     relinearize_threshold: float = 0.001
     min_observations: int = 2                # views of both tags before a relation is decided
@@ -224,9 +228,11 @@ class SfGraphSlam:
             cov = self._relative_covariance(rel.a, rel.b)
             sig_t = self._trans_sigma(cov)
             sig_r = self._rot_sigma(cov)
-            # tie only what the measurements already agree with: within the gate, widened to three
-            # sigma where the pair is measured worse than that
-            if dt > max(c.gate_m, 3.0 * sig_t) or dr > max(c.gate_rad, 3.0 * sig_r):
+            # tie only what the measurements already agree with: within the gate, widened to the
+            # noise's false-alarm quantile where the pair is measured worse than that.  (Three sigma of
+            # the largest axis against a 3-D norm, as before, rejected ~3 % of good pairs.)
+            k3 = self._k(3)
+            if dt > max(c.gate_m, k3 * sig_t) or dr > max(c.gate_rad, k3 * sig_r):
                 rel.reason = (f"relative pose {dt * 1000:.1f} mm / {math.degrees(dr):.2f} deg from design "
                               f"(1 sigma {sig_t * 1000:.1f} mm / {math.degrees(sig_r):.2f} deg)")
                 continue
@@ -238,8 +244,8 @@ class SfGraphSlam:
     def _deploy_check(self, rel: RelationState) -> DeployCheck:
         """The B->T lift read from the tag *positions* in the structure frame, along the design's
         lift axis: a tag's tilt is its least well measured quantity (a frontal view), and over the
-        0.5 m lever it would fake a lateral offset.  The relative rotation is checked against 3
-        sigma of what the pair's covariance allows."""
+        0.5 m lever it would fake a lateral offset.  The relative rotation is checked against the
+        false-alarm quantile of what the pair's covariance allows."""
         bottom, top = (rel.a, rel.b) if self._is_bottom(rel.a) else (rel.b, rel.a)
         design_b = self.model.tags[bottom].structure_T_tag
         pb, pt = self.tag_pose(bottom), self.tag_pose(top)
@@ -254,11 +260,21 @@ class SfGraphSlam:
             lateral_sigma = float(math.sqrt(max(np.linalg.eigvalsh(cov_t[np.ix_([0, 2], [0, 2])]).max(), 0.0)))
         else:
             lift_sigma = lateral_sigma = 0.0
-        rot_tol = max(math.radians(2.0), 3.0 * self._rot_sigma(cov))
+        # each test at the false-alarm quantile of its dimension (lift one-sided, lateral 2-D,
+        # rotation 3-D): 3 sigma on the 2-D lateral norm alone flagged ~1 % of good deployables
+        rot_tol = max(math.radians(2.0), self._k(3) * self._rot_sigma(cov))
         c = self.config
-        return deployable_check(measured, self.model.spacing_m, height_tol_m=max(c.height_tol_m, 3.0 * lift_sigma),
-                                lateral_tol_m=max(0.010, 3.0 * lateral_sigma), rotation_tol_rad=rot_tol,
+        return deployable_check(measured, self.model.spacing_m,
+                                height_tol_m=max(c.height_tol_m, self._k(1, one_sided=True) * lift_sigma),
+                                lateral_tol_m=max(0.010, self._k(2) * lateral_sigma), rotation_tol_rad=rot_tol,
                                 noise_m=lift_sigma)
+
+    def _k(self, dof: int, one_sided: bool = False) -> float:
+        """Threshold in sigmas for a `dof`-dimensional Gaussian error's norm at `gate_alpha`."""
+        from scipy.special import chdtri, ndtri
+
+        a = self.config.gate_alpha
+        return float(-ndtri(a)) if one_sided else float(math.sqrt(chdtri(dof, a)))
 
     @staticmethod
     def _trans_sigma(cov: np.ndarray | None) -> float:
