@@ -182,13 +182,15 @@ class SfGraphSlam:
         self._batch_solved = False
         self._batch_marginals = None
 
-    def solve_batch(self, max_iterations: int = 100) -> gtsam.Values:
-        """Levenberg–Marquardt over the whole graph from the current initial values (studies)."""
+    def solve_batch(self, max_iterations: int = 100, warm_start: bool = False) -> gtsam.Values:
+        """Levenberg–Marquardt over the whole graph from the initial values (studies), or from the
+        last estimate with `warm_start` (every variable must have one)."""
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
         params.setRelativeErrorTol(1e-10)
         params.setAbsoluteErrorTol(1e-12)
-        self.estimate = gtsam.LevenbergMarquardtOptimizer(self.graph, self.initial, params).optimize()
+        start = self.estimate if warm_start else self.initial
+        self.estimate = gtsam.LevenbergMarquardtOptimizer(self.graph, start, params).optimize()
         # marginals must now come from this estimate (iSAM2 has not seen these factors)
         self._batch_solved = True
         self._batch_marginals = None
@@ -199,7 +201,8 @@ class SfGraphSlam:
         self.solve_batch()
         added = self._decide_relations() if self.config.semantic else 0
         if added:
-            self.solve_batch()
+            # the semantic factors only sharpen the first solution: start there, not from scratch
+            self.solve_batch(warm_start=True)
         return added
 
     # ---- the semantic gate -------------------------------------------------------------------
