@@ -69,10 +69,13 @@ def eliminate_tags(estimates: Mapping[int, Pose3], model: BorgModel, *, cutoff_m
         base_tag = min(ids, key=lambda b: float(np.median(distances(base_fit(b)))))
     fit = base_fit(base_tag)
     inliers = distances(fit) <= cutoff_m
+    # an explained tag is off its design spot by its mechanism's motion: it must not bend the
+    # rigid fit (a 15 cm short deployment tilted it enough to move the others by millimetres)
+    rigid = np.array([t not in explained for t in ids])
     for _ in range(10):
-        if inliers.sum() < 3:
+        if (inliers & rigid).sum() < 3:
             break
-        fit = _kabsch(design[inliers], est[inliers])
+        fit = _kabsch(design[inliers & rigid], est[inliers & rigid])
         new = distances(fit) <= cutoff_m
         if np.array_equal(new, inliers):
             break
