@@ -1,0 +1,142 @@
+"""The SLAM studies' ingredients: the paper's noise model as simulated (estimation/slam_sim.py),
+SF-GraphSLAM's gate under that noise (the shared camera error cancels in a related pair; good
+pairs are tied, a partial deployment is caught), and `lab bench slam` on a tiny instance (its JSON
+shape, its outputs, its bad-input errors).  The figures themselves are measured by the bench."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from estimation import bench_slam
+from estimation import slam_sim as ss
+from estimation.sf_graphslam import SfGraphSlam
+from lab.errors import UserError
+from lab.geometry import Pose3
+from lab.structures.borg import build_borg
+
+REQUIRED = {"trans_rmse_m", "rot_rmse_rad", "offset_trans_rmse_m", "offset_rot_rmse_rad", "solve_s"}
+
+
+@pytest.fixture(scope="module")
+def model():
+    return build_borg()
+
+
+def test_paper_noise_grows_ten_percent_per_metre_and_camera_poses_are_off_by_5cm(model):
+    rng = np.random.default_rng(0)
+    tag = model.tags[1].structure_T_tag
+    for d in (1.0, 3.0):
+        cams = ss.cameras_around(tag.translation(), tag.rotation().matrix()[:, 2], d, [[0.0, 0.0, 0.0]] * 400)
+        sv = ss.make_survey(model, [1], cams, rng)
+        err = np.array([v.true_structure_T_camera.between(tag).translation() - v.observations[0].camera_T_tag.translation()
+                        for v in sv.views])
+        want = 0.01 * (1 + 0.1 * d)
+        assert np.std(err, axis=0) == pytest.approx([want] * 3, rel=0.15)
+        assert sv.views[0].observations[0].sigma_m == pytest.approx(want, rel=1e-3)
+        cam_err = np.array([v.reported_structure_T_camera.translation() - v.true_structure_T_camera.translation()
+                            for v in sv.views])
+        assert np.std(cam_err, axis=0) == pytest.approx([0.05] * 3, rel=0.15)
+
+
+def test_structure_faults_move_the_right_tags(model):
+    f = ss.StructureFaults(module_offsets={"6S": ((0.01, 0.0, 0.0), (0.0, 0.0, 0.0))}, deployed_heights={"2D": 0.4},
+                           displaced_tags={17: (0.0, 0.3, 0.0)})
+    truth = ss.true_tag_poses(model, f)
+    d = {t: truth[t].translation() - model.tags[t].structure_T_tag.translation() for t in truth}
+    np.testing.assert_allclose(d[9], [0.01, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(d[2], [0, 0, -0.1], atol=1e-12)
+    np.testing.assert_allclose(d[1], 0, atol=1e-12)
+    np.testing.assert_allclose(d[17], [0, 0.3, 0], atol=1e-12)
+    assert all(np.allclose(v, 0) for t, v in d.items() if t not in (2, 9, 17))
+
+
+def test_the_full_survey_sees_every_tag_at_least_twice(model):
+    cams = ss.full_survey_path(model)
+    seen = {t: sum(ss.visible(c, s.structure_T_tag, s.size_m) for c in cams) for t, s in model.tags.items()}
+    assert min(seen.values()) >= 2, {t: n for t, n in seen.items() if n < 2}
+
+
+def _deployable(model, seed, height=None):
+    faults = ss.StructureFaults(deployed_heights={"2D": height}) if height else None
+    sv = ss.make_survey(model, [1, 2], ss.three_position_path(model, [1, 2]), np.random.default_rng(seed), faults=faults)
+    slam, _ = bench_slam.run_ours(sv, semantic=True)
+    return sv, slam
+
+
+def test_a_related_pairs_covariance_cancels_the_shared_camera_error(model):
+    sv, _ = _deployable(model, 1)
+    slam = SfGraphSlam(model, bench_slam._slam_config(True))
+    for k, v in enumerate(sv.views):
+        slam.add_view(v.reported_structure_T_camera, sv.detections(k))
+    slam.solve_batch()
+    marginal = math.sqrt(np.linalg.eigvalsh(slam.tag_covariance(1)[3:, 3:]).max())
+    relative = math.sqrt(np.linalg.eigvalsh(slam._relative_covariance(1, 2)[3:, 3:]).max())
+    assert marginal > 0.025                # the 5 cm camera pose noise, over three views
+    assert relative < 0.4 * marginal       # the pair's own measurement noise (~1 cm) only
+
+
+def test_good_deployables_are_tied_and_partial_ones_caught_under_the_papers_noise(model):
+    for seed in range(30):
+        _, slam = _deployable(model, 100 + seed)
+        assert [(r.a, r.b) for r in slam.relations.values() if r.tied] == [(1, 2)], slam.untied()[0].reason
+    for seed, h in enumerate((0.42, 0.40, 0.35, 0.30)):      # >= 8 cm short: 7 sigma of the lift noise
+        _, slam = _deployable(model, 200 + seed, h)
+        nd = slam.not_deployed()
+        assert "2D" in nd and nd["2D"].height_m == pytest.approx(h, abs=0.04)
+        assert not any(r.tied for r in slam.relations.values())
+
+
+def _args(tmp_path, **kw) -> argparse.Namespace:
+    p = argparse.ArgumentParser()
+    bench_slam.add_arguments(p)
+    args = p.parse_args([])
+    args.out = str(tmp_path)
+    for k, v in kw.items():
+        setattr(args, k, v)
+    return args
+
+
+def test_bench_writes_the_json_shape_markdown_and_plots(tmp_path, capsys):
+    args = _args(tmp_path, only=["closeout_square", "borg_full", "verification"], trials=1, json=True)
+    assert bench_slam.run(args) == 0
+    printed = json.loads(capsys.readouterr().out)
+    saved = json.loads((tmp_path / "slam.json").read_text())
+    assert printed == saved
+    studies = saved["studies"]
+    assert set(studies) == {"closeout_square", "borg_full", "verification"}
+    for study, methods in studies.items():
+        assert {"graphslam", "sf_graphslam"} <= set(methods), study
+        for name, m in methods.items():
+            assert REQUIRED <= set(m), (study, name)
+    assert {"paper_powell", "paper_gtsam"} <= set(studies["closeout_square"])
+    t = saved["timing"]
+    assert t["isam2_steps"] == 27 and t["batch_lm_s_median"] > 0
+    assert studies["borg_full"]["sf_graphslam"]["offset_trans_rmse_m"] < studies["borg_full"]["graphslam"]["offset_trans_rmse_m"]
+    v = studies["verification"]["sf_graphslam"]["flag_rate"]
+    assert v["offset:0"] == 0.0 and v["offset:15"] == 1.0
+    md = (tmp_path / "slam.md").read_text()
+    assert "#### borg_full" in md and "| iSAM2 step ≤ 10 ms |" in md
+    assert {p.name for p in tmp_path.glob("*.png")} == {"slam_rmse.png", "slam_isam2_steps.png", "slam_verification.png"}
+
+
+def test_bench_refuses_bad_counts(tmp_path):
+    with pytest.raises(UserError, match="--trials must be at least 1, got 0"):
+        bench_slam.run(_args(tmp_path, trials=0))
+    with pytest.raises(UserError, match="--literal-powell must be >= 0"):
+        bench_slam.run(_args(tmp_path, literal_powell=-1))
+
+
+def test_lab_bench_slam_is_on_the_command_line():
+    out = subprocess.run([sys.executable, "-m", "lab", "bench", "slam", "--help"], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0 and "--quick" in out.stdout and "--only" in out.stdout
+    bad = subprocess.run([sys.executable, "-m", "lab", "bench", "slam", "--trials", "0", "--out", "/tmp/lab-test-slam"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--trials must be at least 1" in bad.stderr
