@@ -369,7 +369,8 @@ def assembly_path(model: BorgModel, modules: Sequence[str] | None = None,
                   pitches_deg: Sequence[float] = (-8.0, 0.0, 8.0)) -> tuple[list[Pose3], list[int], list[list[int]]]:
     """An assembly in progress, surveyed as the procedure does: after each module is placed, one
     view per turntable offset around its face, each at the camera pitch that sees most of the new
-    module's tags.  Returns (cameras, step of each view, tags present in each view)."""
+    module's tags and, among those, most of the tags they are related to (so that their relations
+    can be decided).  Returns (cameras, step of each view, tags present in each view)."""
     names = list(modules) if modules is not None else [m.name for m in model.modules]
     cams: list[Pose3] = []
     steps: list[int] = []
@@ -378,11 +379,14 @@ def assembly_path(model: BorgModel, modules: Sequence[str] | None = None,
     for i, name in enumerate(names):
         m = model.module_by_name[name]
         placed = placed + list(m.tags)
+        related = {r for t in m.tags for r in model.tags[t].related if r in placed and r not in m.tags}
         for da in angle_offsets_deg:
             best = None
             for p in pitches_deg:
                 cam = rig_camera(model, math.radians(90.0 * (m.face - 1) + da), math.radians(p))
-                n = sum(visible(cam, model.tags[t].structure_T_tag, model.tags[t].size_m) for t in m.tags)
+                seen = [visible(cam, model.tags[t].structure_T_tag, model.tags[t].size_m) for t in m.tags]
+                seen_rel = [visible(cam, model.tags[t].structure_T_tag, model.tags[t].size_m) for t in related]
+                n = (sum(seen), sum(seen_rel))
                 if best is None or n > best[0] or (n == best[0] and abs(p) < abs(best[2])):
                     best = (n, cam, p)
             assert best is not None
