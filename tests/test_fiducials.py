@@ -49,7 +49,7 @@ def test_ids_corners_and_poses_of_several_tags(detector):
         assert d.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(d.covariance) > 0)
 
 
-@pytest.mark.parametrize("distance_m, trans_bound_m", [(0.7, 0.002), (2.5, 0.02)])
+@pytest.mark.parametrize("distance_m, trans_bound_m", [(0.7, 0.002), (1.0, 0.003), (2.5, 0.02)])
 def test_pose_error_bound_widens_with_distance(detector, distance_m, trans_bound_m):
     errs = []
     for seed in range(4):
