@@ -63,6 +63,26 @@ def test_the_full_survey_sees_every_tag_at_least_twice(model):
     assert min(seen.values()) >= 2, {t: n for t, n in seen.items() if n < 2}
 
 
+def test_a_rendered_survey_is_measured_by_the_real_detector(model):
+    """slam_sim.measure_rendered: the views rendered from the true camera, read by TagDetector (with
+    the reported camera predicting the tags), and SF-GraphSLAM on what it found."""
+    from lab.geometry import pose_error
+
+    rng = np.random.default_rng(5)
+    tags = [0, 1, 2, 9]
+    drawn = ss.make_survey(model, tags, ss.face_path(model, tags, distance_m=2.2), rng, noise=ss.RigNoise())
+    sv = ss.measure_rendered(drawn, rng)
+    assert sv.sightings() == drawn.sightings()            # the detector reads every tag predicted visible
+    for v in sv.views:
+        for o in v.observations:
+            assert pose_error(o.camera_T_tag, v.true_structure_T_camera.between(sv.truth[o.tag]))[0] < 0.02
+            assert o.covariance.shape == (6, 6)
+    slam, _ = bench_slam.run_ours(sv, semantic=True, noise=ss.RigNoise())
+    est = slam.tag_estimates()
+    assert max(pose_error(est[t], sv.truth[t])[0] for t in tags) < 0.005
+    assert {(r.a, r.b) for r in slam.relations.values() if r.tied} == {(0, 1), (1, 2), (1, 9)}
+
+
 def _deployable(model, seed, height=None):
     faults = ss.StructureFaults(deployed_heights={"2D": height}) if height else None
     sv = ss.make_survey(model, [1, 2], ss.three_position_path(model, [1, 2]), np.random.default_rng(seed), faults=faults)
