@@ -113,6 +113,21 @@ def test_good_deployables_are_tied_and_partial_ones_caught_under_the_papers_nois
         assert not any(r.tied for r in slam.relations.values())
 
 
+def test_slam_config_takes_the_papers_q_r_s(model):
+    """SlamConfig can run the paper's Eqs. 34-36: a fixed Q replaces each detection's covariance,
+    R and S are the camera and semantic sigmas, and no robust kernel."""
+    cfg = bench_slam.paper_qrs_config()
+    sv = ss.make_survey(model, [1, 2], ss.three_position_path(model, [1, 2]), np.random.default_rng(3))
+    slam = SfGraphSlam(model, cfg)
+    slam.add_view(sv.views[0].reported_structure_T_camera, sv.detections(0))
+    factors = [slam.graph.at(i) for i in range(slam.graph.size())]
+    prior, obs = factors[0], factors[1]
+    np.testing.assert_allclose(prior.noiseModel().sigmas(), [0.1] * 3 + [math.sqrt(0.1)] * 3)
+    np.testing.assert_allclose(obs.noiseModel().sigmas(), [math.sqrt(0.1)] * 3 + [1.0] * 3)
+    assert "Robust" not in type(obs.noiseModel()).__name__
+    assert slam.semantic_noise.sigmas() == pytest.approx([math.sqrt(0.1)] * 6)
+
+
 def _args(tmp_path, **kw) -> argparse.Namespace:
     p = argparse.ArgumentParser()
     bench_slam.add_arguments(p)
