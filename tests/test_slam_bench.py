@@ -18,7 +18,6 @@ from estimation import bench_slam
 from estimation import slam_sim as ss
 from estimation.sf_graphslam import SfGraphSlam
 from lab.errors import UserError
-from lab.geometry import Pose3
 from lab.structures.borg import build_borg
 
 REQUIRED = {"trans_rmse_m", "rot_rmse_rad", "offset_trans_rmse_m", "offset_rot_rmse_rad", "solve_s"}
