@@ -26,6 +26,8 @@ import math
 import os
 import time
 
+from estimation.bench_common import save_figure
+
 DISTANCES_M = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 MAX_VIEW_ANGLE_DEG = 60.0
 PRIOR_ROT_DEG = 3.0
@@ -269,11 +271,7 @@ def _plots(res: dict, out_dir: str) -> list[str]:
     axes[1].set(xlabel="viewing angle off the tag normal (deg)", ylabel="rotation error (deg)", yscale="log")
     axes[0].legend(fontsize=7)
     fig.suptitle("Single-view AprilTag pose error on rendered images")
-    fig.tight_layout()
-    p = os.path.join(out_dir, "fiducials_error.png")
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
-    paths.append(p)
+    paths.append(save_figure(fig, out_dir, "fiducials_error.png"))
     return paths
 
 

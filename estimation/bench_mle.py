@@ -23,6 +23,8 @@ import math
 import os
 import time
 
+from estimation.bench_common import save_figure
+
 SIGMA_L_PAPER = math.sqrt(3.57e-7)
 SIGMA_M_PAPER = math.sqrt(6.25e-8)
 
@@ -260,11 +262,7 @@ def _plots(studies: dict, out_dir: str) -> list[str]:
         for a in ax:
             a.grid(True, which="both", alpha=0.3)
             a.legend(fontsize=8)
-        fig.tight_layout()
-        path = os.path.join(out_dir, "tetrahelix20.png")
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        files.append(path)
+        files.append(save_figure(fig, out_dir, "tetrahelix20.png"))
     if "telescope84" in studies:
         s = studies["telescope84"]
         fig, ax = plt.subplots(1, 2, figsize=(11, 4))
@@ -283,11 +281,7 @@ def _plots(studies: dict, out_dir: str) -> list[str]:
         for a in ax:
             a.grid(True, alpha=0.3)
             a.legend(fontsize=8)
-        fig.tight_layout()
-        path = os.path.join(out_dir, "telescope84.png")
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        files.append(path)
+        files.append(save_figure(fig, out_dir, "telescope84.png"))
     if "sequencing45" in studies:
         s = studies["sequencing45"]
         fig, ax = plt.subplots(figsize=(6, 4))
@@ -301,11 +295,7 @@ def _plots(studies: dict, out_dir: str) -> list[str]:
         ax.set(title="telescope:45 steepest-descent trace trajectory", xlabel="descent step", ylabel="trace [1e-4 m²]")
         ax.grid(True, alpha=0.3)
         ax.legend()
-        fig.tight_layout()
-        path = os.path.join(out_dir, "sequencing45.png")
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        files.append(path)
+        files.append(save_figure(fig, out_dir, "sequencing45.png"))
     return files
 
 

@@ -35,6 +35,8 @@ import math
 import os
 import time
 
+from estimation.bench_common import save_figure
+
 STUDIES = ("deployable", "closeout_strut", "closeout_square", "partial_deploy", "borg_face1", "tag_elimination",
            "borg_full", "borg_full_rendered", "verification")
 # (full, --quick) trial counts; the paper ran 50 (deployable) and 10 (close-outs)
@@ -667,11 +669,7 @@ def _plots(res: dict, out_dir: str) -> list[str]:
             ax.set_ylabel(label)
             ax.grid(axis="y", alpha=0.3)
         axes[0].legend()
-        fig.tight_layout()
-        f = os.path.join(out_dir, "slam_rmse.png")
-        fig.savefig(f, dpi=110)
-        plt.close(fig)
-        files.append(f)
+        files.append(save_figure(fig, out_dir, "slam_rmse.png"))
     if "timing" in res:
         t = res["timing"]
         fig, ax = plt.subplots(figsize=(7, 3.5))
@@ -682,11 +680,7 @@ def _plots(res: dict, out_dir: str) -> list[str]:
         ax.set_ylabel("iSAM2 update [ms]")
         ax.set_title("borg_full: SF-GraphSLAM update per assembly step (median over runs)")
         ax.legend()
-        fig.tight_layout()
-        f = os.path.join(out_dir, "slam_isam2_steps.png")
-        fig.savefig(f, dpi=110)
-        plt.close(fig)
-        files.append(f)
+        files.append(save_figure(fig, out_dir, "slam_isam2_steps.png"))
     if "verification" in st:
         v = st["verification"]
         fig, axes = plt.subplots(1, 2, figsize=(11, 4))
@@ -704,11 +698,7 @@ def _plots(res: dict, out_dir: str) -> list[str]:
             ax.set_ylim(-0.05, 1.05)
             ax.grid(alpha=0.3)
         axes[0].legend(fontsize=8)
-        fig.tight_layout()
-        f = os.path.join(out_dir, "slam_verification.png")
-        fig.savefig(f, dpi=110)
-        plt.close(fig)
-        files.append(f)
+        files.append(save_figure(fig, out_dir, "slam_verification.png"))
     return files
 
 
