@@ -69,6 +69,15 @@ class LineDevice:
     def is_moving(self) -> bool:
         return False
 
+    def _ready(self) -> None:
+        """Refuse a motion command while a fault is latched or a motion is in progress (the
+        firmware rule of every serial device in docs/protocols.md); devices without faults pass."""
+        fault = getattr(self, "fault", "none")
+        if fault != "none":
+            raise Refuse(E_FAULT, f"fault {fault} latched: send CLEAR after finding the cause")
+        if self.is_moving():
+            raise Refuse(E_BUSY, "busy: a motion is in progress (send STOP first)")
+
     def link_lost(self) -> None:
         """The host connection dropped: stop (our firmware treats it as an emergency stop)."""
 

@@ -16,7 +16,7 @@ from scipy.optimize import least_squares
 
 from lab.config import StewartGeometry
 from lab.geometry import Pose3, from_xyzrpy, to_xyzrpy
-from sim_devices.line_server import E_BUSY, E_FAULT, E_RANGE, E_SYNTAX, LineDevice, Refuse, decimal, nargs
+from sim_devices.line_server import E_RANGE, E_SYNTAX, LineDevice, Refuse, decimal, nargs
 from sim_devices.motion import Axis
 
 MODEL, FIRMWARE = "LAB-HEX6", "1.0"
@@ -60,12 +60,6 @@ class StewartSim(LineDevice):
 
     def link_lost(self) -> None:
         self.legs.stop()
-
-    def _ready(self) -> None:
-        if self.fault != "none":
-            raise Refuse(E_FAULT, f"fault {self.fault} latched: send CLEAR after finding the cause")
-        if self.is_moving():
-            raise Refuse(E_BUSY, "busy: a motion is in progress (send STOP first)")
 
     def _id(self, args: list[str]) -> str:
         nargs(args, 0, "ID?")

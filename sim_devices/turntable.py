@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-from sim_devices.line_server import (E_BUSY, E_FAULT, E_NOT_HOMED, E_RANGE, LineDevice, Refuse, decimal, nargs)
+from sim_devices.line_server import (E_NOT_HOMED, E_RANGE, LineDevice, Refuse, decimal, nargs)
 from sim_devices.motion import Axis
 
 MODEL, FIRMWARE = "LAB-RT1", "1.0"
@@ -53,12 +53,6 @@ class TurntableSim(LineDevice):
         if self.is_moving():
             return "HOMING" if self.homing else "MOVING"
         return "IDLE"
-
-    def _ready(self) -> None:
-        if self.fault != "none":
-            raise Refuse(E_FAULT, f"fault {self.fault} latched: send CLEAR after finding the cause")
-        if self.is_moving():
-            raise Refuse(E_BUSY, "busy: a motion is in progress (send STOP first)")
 
     # -- commands -------------------------------------------------------------------------------
     def _id(self, args: list[str]) -> str:
