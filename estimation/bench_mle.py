@@ -61,7 +61,7 @@ def _mc_summary(mc, k: int) -> dict:
 
 
 def study_tetrahelix20(trials: int, seed: int) -> dict:
-    import numpy as np
+    pass
 
     from estimation.truss_covariance import node_traces
     from estimation.truss_geometry import Plan, orient_base

@@ -20,7 +20,7 @@ Poses are in the paper's tag frame (x right, y up, z out of the face): `camera_T
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import Callable, Mapping, Sequence
 

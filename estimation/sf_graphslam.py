@@ -23,7 +23,7 @@ units, every update) and batch Levenberg–Marquardt for studies.  Marginal cova
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Iterable, Sequence
 
 import gtsam

@@ -14,7 +14,6 @@ the gauge frame (`node_covariances(..., frame="gauge")`) to compare with simulat
 from __future__ import annotations
 
 import math
-from typing import Sequence
 
 import numpy as np
 

@@ -18,7 +18,7 @@ With A the matrix of those rows, dXf = A^-1 [L dL + (Xf - Xb) . dXb].
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from typing import Iterable, Sequence
 

@@ -28,7 +28,7 @@ the previous estimate (the paper's gradient ascent, for studies).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import gtsam

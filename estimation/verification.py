@@ -15,7 +15,7 @@ only if the bottom one is unusable and the module is deployed).  It is compared 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Mapping
 
 import numpy as np

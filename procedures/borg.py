@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from lab.errors import UserError
-from lab.geometry import Pose3, from_xyzrpy, pose_error
+from lab.geometry import pose_error
 from lab.recorder import messages as m
 from lab.recorder import topics
 from lab.structures.borg import BorgModel, build_borg
@@ -175,7 +175,6 @@ class BorgProcedure:
 
     def _survey_and_verify(self, spec: StepSpec, run: RunContext, name: str, attempt: int) -> ModuleResult:
         rec = run.recorder
-        devices = self.bench.devices
         survey = self.surveys[name]
         views = []
         for k, view in enumerate(survey.views):

@@ -12,7 +12,7 @@ import numpy as np
 from estimation.fiducials import Detection, TagDetector
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
 from estimation.tag_elimination import eliminate_tags
-from estimation.verification import Tolerances, Verdict, module_from_tag, verify_module
+from estimation.verification import Tolerances, Verdict, verify_module
 from lab.geometry import Pose3, from_xyzquat, to_xyzquat
 from lab.recorder import messages as m
 from lab.structures.borg import BorgModel
@@ -34,13 +34,15 @@ class Measurement:
 
     # ---- detection ---------------------------------------------------------------------------
     def detect(self, image: np.ndarray, structure_T_camera: Pose3 | None = None) -> list[Detection]:
-        predict = None
-        if structure_T_camera is not None:
-            camera_T_structure = structure_T_camera.inverse()
+        """Tags in `image`; with the camera's pose from the kinematics, the design predicts each
+        tag's pose, which settles IPPE ambiguities."""
+        if structure_T_camera is None:
+            return self.detector.detect(image)
+        camera_T_structure = structure_T_camera.inverse()
 
-            def predict(tid: int) -> Pose3 | None:
-                spec = self.model.tags.get(tid)
-                return None if spec is None else camera_T_structure.compose(spec.structure_T_tag)
+        def predict(tid: int) -> Pose3 | None:
+            spec = self.model.tags.get(tid)
+            return None if spec is None else camera_T_structure.compose(spec.structure_T_tag)
         return self.detector.detect(image, predict)
 
     @staticmethod

@@ -23,7 +23,6 @@ from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import MAGIC_SIZE, breakup_chunk
 
 from lab.errors import UserError
-from lab.recorder import messages as m
 from lab.recorder import topics
 
 MAGIC = bytes([137, 77, 67, 65, 80, 48, 13, 10])

@@ -11,7 +11,6 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer as McapWriter
 
 from lab.errors import UserError
