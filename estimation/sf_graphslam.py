@@ -187,8 +187,10 @@ class SfGraphSlam:
         last estimate with `warm_start` (every variable must have one)."""
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
-        params.setRelativeErrorTol(1e-10)
-        params.setAbsoluteErrorTol(1e-12)
+        # A relative error change of 1e-6 is converged for these problems (the RMSEs of the studies
+        # agree with 1e-10 to three figures); the Huber kernel makes the last digits cost ~2x time.
+        params.setRelativeErrorTol(1e-6)
+        params.setAbsoluteErrorTol(1e-9)
         start = self.estimate if warm_start else self.initial
         self.estimate = gtsam.LevenbergMarquardtOptimizer(self.graph, start, params).optimize()
         # marginals must now come from this estimate (iSAM2 has not seen these factors)
