@@ -87,18 +87,20 @@ class TrussProcedure:
                 for k, s in enumerate(self.plan_obj.steps)]
 
     def dry_run_problems(self, steps: list[StepSpec]) -> list[str]:
-        """Every strut's nominal length must be reachable by an IPJR attached with its actuator
-        centred and the strut set coarsely by hand; the plan must be buildable; the IPJRs must
-        exist.  Nothing is sent to any device."""
+        """Every strut must be reachable by an IPJR attached with its actuator centred and the strut
+        set coarsely by hand; the plan must be buildable; the IPJRs must exist.  Nothing is sent
+        to any device."""
         from estimation.sequencing import validate_plan
 
         problems = list(validate_plan(self.model, self.plan_obj))
         for name in self.ipjr_names:
             cfg = self.bench.rig.ipjrs[name]
             half = CENTRE_EXTENSION * cfg.stroke_m
-            if COARSE_SET_M + 3 * self.sigma_L > half and self.sigma_L < 0.05:
-                problems.append(f"{name}: a {cfg.stroke_m * 1000:g} mm stroke cannot absorb the hand setting "
-                                f"(+-{COARSE_SET_M * 1000:g} mm) and the strut noise")
+            # the fixing error (sigma_L) comes after the IPJR lets go, so only the hand setting and
+            # the controller's tolerance must fit in half the stroke from the centred actuator
+            if COARSE_SET_M + cfg.tolerance_m > half:
+                problems.append(f"{name}: half its {cfg.stroke_m * 1000:g} mm stroke cannot absorb the hand setting "
+                                f"(+-{COARSE_SET_M * 1000:g} mm)")
         for s in self.plan_obj.steps:
             if len(s.base) > len(self.ipjr_names):
                 problems.append(f"node {s.node} needs {len(s.base)} IPJRs, the rig has {len(self.ipjr_names)}")
