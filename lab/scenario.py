@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from lab.errors import UserError
+from lab.rig_error import RigError, parse_rig_error
 
 BORG_FAULT_KINDS = ("partial_deploy", "tag_displaced", "module_offset")
 DEVICE_FAULT_KINDS = ("timeout", "garbled", "disconnect", "stuck", "http_500")
@@ -53,6 +54,7 @@ class Scenario:
     truss: TrussNoise = field(default_factory=TrussNoise)
     camera: CameraNoise = field(default_factory=CameraNoise)
     source: str = "<default>"
+    rig_error: RigError | None = None     # None: the rig's own [sim.rig_error]
 
     def to_dict(self) -> dict[str, Any]:
         from dataclasses import asdict
@@ -86,7 +88,7 @@ def _check_keys(source: str, where: str, table: dict, allowed: set[str]) -> None
 
 
 def parse_scenario(data: dict[str, Any], source: str = "<dict>") -> Scenario:
-    _check_keys(source, "", data, {"seed", "borg", "truss", "device", "camera"})
+    _check_keys(source, "", data, {"seed", "borg", "truss", "device", "camera", "rig_error"})
     seed = data.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise _err(source, "seed", f"expected a non-negative integer, got {seed!r}")
@@ -151,7 +153,11 @@ def parse_scenario(data: dict[str, Any], source: str = "<dict>") -> Scenario:
         pixel_noise=_number(source, "camera.pixel_noise", cam.get("pixel_noise", CameraNoise.pixel_noise)),
         blur_px=_number(source, "camera.blur_px", cam.get("blur_px", CameraNoise.blur_px)),
     )
-    return Scenario(seed, tuple(borg_faults), tuple(device_faults), tn, cn, source)
+    rig_error = None
+    if "rig_error" in data:
+        rig_error = parse_rig_error(data["rig_error"], lambda key, problem: _err(
+            source, f"rig_error.{key}" if key else "rig_error", problem))
+    return Scenario(seed, tuple(borg_faults), tuple(device_faults), tn, cn, source, rig_error)
 
 
 def load_scenario(path: str | Path | None) -> Scenario:

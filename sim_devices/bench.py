@@ -149,5 +149,19 @@ def start_sim_bench(rig: Rig | None = None, scenario: Scenario | None = None, *,
         raise
     if place_all and world.borg is not None:
         world.borg.place_all()
-    bench.rig = rig.with_urls(bench.urls)
+    bench.rig = _untold(rig.with_urls(bench.urls))
     return bench
+
+
+def _untold(rig: Rig) -> Rig:
+    """The rig as the software gets it: the bench's true errors stay in the world."""
+    from dataclasses import replace
+
+    from lab.rig_error import RigError
+
+    if rig.sim is None:
+        return rig
+    data = dict(rig.data)
+    if isinstance(data.get("sim"), dict):
+        data["sim"] = {k: v for k, v in data["sim"].items() if k != "rig_error"}
+    return replace(rig, sim=replace(rig.sim, rig_error=RigError()), data=data)

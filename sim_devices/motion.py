@@ -33,6 +33,7 @@ class Axis:
         self._travel_s = 0.0
         self._moving = False
         self.stuck = False             # a stuck actuator: accepts moves, never gets anywhere
+        self.moves = 0                 # moves started: each lands with its own repeatability error
 
     def _value(self, x: np.ndarray) -> float | np.ndarray:
         return float(x) if x.ndim == 0 else x.copy()
@@ -77,6 +78,7 @@ class Axis:
             self._t0 = now
             self._moving = True
             self.stuck = stuck
+            self.moves += 1
             return self._travel_s
 
     def stop(self) -> None:

@@ -2,8 +2,16 @@
 
 `SimWorld` holds every physical truth the device simulators act on and the camera sees:
 - the turntable axis (rad) and the Stewart platform's six legs (m), moved by their controllers;
-- the true camera pose, world_T_camera = world_T_stewart_base · base_T_platform(true legs) ·
-  platform_T_camera (the mounting poses are the rig file's: no mounting error);
+- the true rig (`TrueRig`): the rig file plus the rig's errors (`lab/rig_error.py`: the rig's
+  `[sim.rig_error]`, or the scenario's `[rig_error]`), which the software is never told -- the
+  camera mount, the Stewart base, the turntable's rotation axis (offset and tilt), each turntable
+  tag's placement, the lens' focal length and principal point, and a fresh repeatability error of
+  the platform pose and of the turntable angle at every move;
+- the true camera pose, world_T_camera = world_T_base · base_T_platform(true legs) · repeatability
+  · platform_T_camera, all of them the true ones;
+- the world frame is where the turntable plate sits at encoder zero, so the structure turns about
+  the true axis: world_T_structure(a) = world_T_axis · Rz(a + repeatability) · axis_T_world ·
+  world_T_structure_design(0);
 - the BORG structure (`BorgTruth`): which modules are placed so far (only their tags are seen),
   per-module pose errors, partial deployments, displaced tags;
 - each IPJR's actuator (`sim_devices.ipjr.IpjrActuator`), and the strut it is attached to.
@@ -12,7 +20,11 @@ Procedures use it in simulation to act as the operator (place a module, attach a
 score their estimates against the truth.  It never reads anything the drivers compute.
 
 Seeding: every random part draws from its own generator, `default_rng([seed, k])`, so adding one
-does not change the others' numbers."""
+does not change the others' numbers.
+
+Left out: errors of the Stewart joint positions and leg encoders (the platform's own kinematic
+calibration), the structure's placement on the plate (the structure frame is the plate's), thermal
+drift, and lens distortion error (the calibration file's distortion is the true one)."""
 
 from __future__ import annotations
 
@@ -27,6 +39,7 @@ import numpy as np
 from lab.config import Rig
 from lab.errors import UserError
 from lab.geometry import Pose3, Rot3, to_xyzrpy
+from lab.rig_error import RigError
 from lab.scenario import BorgFault, Scenario
 from lab.structures.borg import BorgModel, build_borg
 from sim_devices.ipjr import IpjrActuator
@@ -34,7 +47,39 @@ from sim_devices.motion import Axis
 from sim_devices.stewart import platform_pose
 
 # Independent random streams (the k in default_rng([seed, k])).
-_STREAM_CAMERA, _STREAM_IPJR = 1, 100
+_STREAM_CAMERA, _STREAM_TT_TAGS, _STREAM_MOTION, _STREAM_IPJR = 1, 2, 3, 100
+
+
+def _perturbed(nominal_translation: np.ndarray, nominal_rotation: Rot3, offset: Iterable[float],
+               rpy: Iterable[float]) -> Pose3:
+    """A mounting pose off its nominal one: translated by `offset` and turned by roll-pitch-yaw
+    about its own origin, both in the parent frame's axes."""
+    R = Rot3.RzRyRx(*[float(a) for a in rpy])
+    return Pose3(R.compose(nominal_rotation), np.asarray(nominal_translation, float) + np.asarray(list(offset), float))
+
+
+@dataclass(frozen=True)
+class TrueRig:
+    """The bench as it really is (what the rig file only approximates)."""
+
+    error: RigError
+    world_T_base: Pose3 | None
+    platform_T_camera: Pose3 | None
+    world_T_axis: Pose3              # the turntable's rotation axis is this frame's z axis
+
+
+def true_rig(rig: Rig, error: RigError) -> TrueRig:
+    e = error
+    base = cam = None
+    if rig.stewart is not None:
+        n = rig.stewart.world_T_base
+        base = _perturbed(n.translation(), n.rotation(), e.stewart_base_offset_m, e.stewart_base_rotation_rad)
+    if rig.camera is not None:
+        n = rig.camera.platform_T_camera
+        cam = _perturbed(n.translation(), n.rotation(), e.camera_mount_offset_m, e.camera_mount_rotation_rad)
+    tx, ty = e.turntable_axis_tilt_rad
+    dx, dy = e.turntable_axis_offset_m
+    return TrueRig(e, base, cam, Pose3(Rot3.RzRyRx(tx, ty, 0.0), np.array([dx, dy, 0.0])))
 
 
 def _correction(about: np.ndarray, offset_m: Iterable[float], rotation_rad: Iterable[float]) -> Pose3:
@@ -54,7 +99,12 @@ class BorgTruth:
         self._module_fix: dict[str, Pose3] = {}
         self._height: dict[str, float] = {}
         self._tag_fix: dict[int, Pose3] = {}
+        self._placement: dict[int, Pose3] = {}     # as glued: not a fault, part of the rig's error
         self._lock = threading.RLock()
+
+    def set_tag_placement(self, tag: int, error: Pose3) -> None:
+        """Where a tag was really glued: `error` composed on the right of its design pose."""
+        self._placement[tag] = error
 
     # -- what the operator does ---------------------------------------------------------------------
     def _module(self, name: str):
@@ -137,6 +187,8 @@ class BorgTruth:
     def structure_T_tag(self, tag: int) -> Pose3:
         spec = self.model.tags[tag]
         T = spec.structure_T_tag
+        if tag in self._placement:
+            T = T.compose(self._placement[tag])
         if spec.module != "turntable":
             m = self.model.module_by_name[spec.module]
             if m.kind == "deployable" and len(m.tags) == 2 and tag == m.tags[1] and spec.module in self._height:
@@ -179,6 +231,13 @@ class SimWorld:
         sim = rig.sim
         self._lock = threading.RLock()
         self.started_s = time.time()
+        self.rig_error = self.scenario.rig_error if self.scenario.rig_error is not None else sim.rig_error
+        self.true_rig = true_rig(rig, self.rig_error)
+        # per-move repeatability: a fresh error whenever an axis has started a move since the last
+        # look (and at every reseed, so a re-run step sees the same rig as the first time)
+        self._motion_rng = np.random.default_rng([self.seed, _STREAM_MOTION])
+        self._tt_repeat: tuple[int, float] | None = None
+        self._stewart_repeat: tuple[int, Pose3] | None = None
 
         # -- the turntable and the structure on it
         self.turntable: Axis | None = None
@@ -188,6 +247,13 @@ class SimWorld:
         self.borg: BorgTruth | None = None
         if rig.turntable or rig.camera:
             self.borg = BorgTruth(build_borg(sim.borg_n))
+            sig = self.rig_error.turntable_tag_sigma_m
+            if sig > 0:
+                rng = np.random.default_rng([self.seed, _STREAM_TT_TAGS])
+                for tid in self.borg.model.turntable.tag_ids:
+                    rot_sig = sig / self.borg.model.tags[tid].size_m
+                    self.borg.set_tag_placement(tid, Pose3(Rot3.Expmap(rng.normal(0.0, rot_sig, 3)),
+                                                           rng.normal(0.0, sig, 3)))
             self.borg.apply(self.scenario.borg_faults)
 
         # -- the Stewart platform
@@ -204,7 +270,10 @@ class SimWorld:
         self._camera_rng = np.random.default_rng([self.seed, _STREAM_CAMERA])
         if rig.camera:
             c = sim.camera
-            K = np.array([[c["fx_px"], 0.0, c["cx_px"]], [0.0, c["fy_px"], c["cy_px"]], [0.0, 0.0, 1.0]])
+            f = self.rig_error.focal_scale
+            du, dv = self.rig_error.principal_point_offset_px
+            K = np.array([[c["fx_px"] * f, 0.0, c["cx_px"] + du], [0.0, c["fy_px"] * f, c["cy_px"] + dv],
+                          [0.0, 0.0, 1.0]])
             noise = self.scenario.camera if scenario is not None else None
             self.camera = TrueCamera(K, np.asarray(c["dist"], dtype=float), int(c["width_px"]), int(c["height_px"]),
                                      noise.pixel_noise if noise else c["pixel_noise"],
@@ -226,7 +295,24 @@ class SimWorld:
 
     # -- truth queries ------------------------------------------------------------------------------
     def turntable_angle_rad(self) -> float:
-        return float(self.turntable.position()) if self.turntable else 0.0
+        """The plate's true angle: the encoder's plus this move's repeatability error."""
+        if not self.turntable:
+            return 0.0
+        with self._lock:
+            moves = self.turntable.moves
+            if self._tt_repeat is None or self._tt_repeat[0] != moves:
+                self._tt_repeat = (moves, float(self._motion_rng.normal(0.0, self.rig_error.turntable_repeatability_rad)))
+            return float(self.turntable.position()) + self._tt_repeat[1]
+
+    def _stewart_repeatability(self) -> Pose3:
+        assert self.stewart_legs is not None
+        e = self.rig_error
+        with self._lock:
+            moves = self.stewart_legs.moves
+            if self._stewart_repeat is None or self._stewart_repeat[0] != moves:
+                self._stewart_repeat = (moves, Pose3(Rot3.Expmap(self._motion_rng.normal(0.0, e.stewart_repeatability_rad, 3)),
+                                                     self._motion_rng.normal(0.0, e.stewart_repeatability_m, 3)))
+            return self._stewart_repeat[1]
 
     def home_T_platform(self) -> Pose3:
         """The platform's true pose relative to home, from the true leg lengths."""
@@ -241,17 +327,24 @@ class SimWorld:
     def world_T_camera(self) -> Pose3:
         if self.rig.camera is None:
             raise UserError(f"rig {self.rig.name!r} has no camera")
-        platform_T_camera = self.rig.camera.platform_T_camera
+        platform_T_camera = self.true_rig.platform_T_camera
+        assert platform_T_camera is not None
         if self.rig.stewart is None:
             return platform_T_camera  # a fixed camera: its mount pose is in the world frame
         g = self.rig.stewart.geometry
         hp = self.home_T_platform()
-        base_T_platform = Pose3(hp.rotation(), g.home_m + hp.translation())
-        return self.rig.stewart.world_T_base.compose(base_T_platform).compose(platform_T_camera)
+        base_T_platform = Pose3(hp.rotation(), g.home_m + hp.translation()).compose(self._stewart_repeatability())
+        world_T_base = self.true_rig.world_T_base
+        assert world_T_base is not None
+        return world_T_base.compose(base_T_platform).compose(platform_T_camera)
 
     def world_T_structure(self) -> Pose3:
+        """The structure turns with the plate about the true axis; at encoder zero it sits where
+        the design puts it (that defines the world frame)."""
         assert self.borg is not None
-        return self.borg.model.world_T_structure(self.turntable_angle_rad())
+        A = self.true_rig.world_T_axis
+        at_zero = self.borg.model.world_T_structure(0.0)
+        return A.compose(Pose3(Rot3.Rz(self.turntable_angle_rad()), np.zeros(3))).compose(A.inverse()).compose(at_zero)
 
     def world_T_tag(self, tag: int) -> Pose3:
         assert self.borg is not None
@@ -274,6 +367,9 @@ class SimWorld:
         procedure step re-run after an interruption sees the same noise as the first time."""
         with self._lock:
             self._camera_rng = np.random.default_rng(seed)
+            # this view's repeatability errors are drawn afresh from the same seed
+            self._motion_rng = np.random.default_rng([*np.atleast_1d(seed).tolist(), _STREAM_MOTION])
+            self._tt_repeat = self._stewart_repeat = None
 
     def render(self) -> np.ndarray:
         """The image the camera sees now (BGR uint8)."""

@@ -12,6 +12,7 @@ import pytest
 from lab.config import load_rig, parse_rig
 from lab.errors import UserError
 from lab.geometry import pose_error
+from lab.rig_error import RigError
 from lab.scenario import BorgFault, Scenario, load_scenario
 from sim_devices.world import SimWorld
 
@@ -92,7 +93,7 @@ def test_the_issue_scenario_file_applies_its_structure_faults():
 
 
 def test_true_camera_pose_follows_the_turntable_and_the_stewart():
-    w = world()
+    w = world(Scenario(rig_error=RigError()))      # an ideal rig: the true chain is the rig file's
     home_cam = w.world_T_camera()
     assert home_cam.translation() == pytest.approx([-2.95, 0.0, 0.75])
     tag = 1
