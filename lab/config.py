@@ -115,6 +115,60 @@ class SimConfig:
 
 
 @dataclass(frozen=True)
+class CalibrationConfig:
+    """The `[calibration]` table: how well the rig file's geometry is known before any rig
+    calibration (the priors the graph starts from), the devices' datasheet repeatability, and the
+    rig calibration file `lab calibrate rig` wrote (docs/calibration.md).  SI units."""
+
+    file: Path | None = None
+    camera_mount_sigma_m: float = 0.010
+    camera_mount_sigma_rad: float = math.radians(2.0)
+    stewart_base_sigma_m: float = 0.020
+    stewart_base_sigma_rad: float = math.radians(2.0)
+    turntable_axis_sigma_m: float = 0.005
+    turntable_axis_sigma_rad: float = math.radians(0.3)
+    turntable_tag_sigma_m: float = 0.001
+    focal_sigma: float = 0.01                 # relative
+    principal_point_sigma_px: float = 5.0
+    stewart_repeatability_m: float = 0.00002
+    stewart_repeatability_rad: float = math.radians(0.002)
+    turntable_repeatability_rad: float = math.radians(0.005)
+
+
+# (key, default in the file's unit, SI factor, attribute)
+_CALIBRATION_KEYS = (
+    ("camera_mount_sigma_mm", 10.0, 1e-3, "camera_mount_sigma_m"),
+    ("camera_mount_sigma_deg", 2.0, math.pi / 180, "camera_mount_sigma_rad"),
+    ("stewart_base_sigma_mm", 20.0, 1e-3, "stewart_base_sigma_m"),
+    ("stewart_base_sigma_deg", 2.0, math.pi / 180, "stewart_base_sigma_rad"),
+    ("turntable_axis_sigma_mm", 5.0, 1e-3, "turntable_axis_sigma_m"),
+    ("turntable_axis_sigma_deg", 0.3, math.pi / 180, "turntable_axis_sigma_rad"),
+    ("turntable_tag_sigma_mm", 1.0, 1e-3, "turntable_tag_sigma_m"),
+    ("focal_sigma_percent", 1.0, 1e-2, "focal_sigma"),
+    ("principal_point_sigma_px", 5.0, 1.0, "principal_point_sigma_px"),
+    ("stewart_repeatability_mm", 0.02, 1e-3, "stewart_repeatability_m"),
+    ("stewart_repeatability_deg", 0.002, math.pi / 180, "stewart_repeatability_rad"),
+    ("turntable_repeatability_deg", 0.005, math.pi / 180, "turntable_repeatability_rad"),
+)
+
+
+def _calibration(t: "_Table", base_dir: Path | None) -> CalibrationConfig:
+    values: dict[str, Any] = {}
+    f = t.string("file", default="")
+    if f:
+        path = Path(f)
+        if not path.is_absolute() and base_dir is not None:
+            path = base_dir / path
+        if not path.exists():
+            raise t.error("file", f"no such file: {path} (write it with `lab calibrate rig`)")
+        values["file"] = path
+    for key, default, si, attr in _CALIBRATION_KEYS:
+        values[attr] = t.number(key, default=default, positive=True, maximum=1e3) * si
+    t.done()
+    return CalibrationConfig(**values)
+
+
+@dataclass(frozen=True)
 class Rig:
     name: str
     source: str                                  # file path, or "<package>/sim.toml"
@@ -125,6 +179,7 @@ class Rig:
     sim: SimConfig | None = None
     description: str = ""
     data: dict[str, Any] = field(default_factory=dict)   # the file as read, for the run's start record
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
     @property
     def simulated(self) -> bool:
@@ -281,11 +336,12 @@ def parse_rig(data: dict[str, Any], source: str = "<dict>", base_dir: Path | Non
     sim = None
     if "sim" in data:
         sim = _sim(top.table("sim"))
+    calibration = _calibration(top.table("calibration", required=False), base_dir)
 
     top.done()
     if not names:
         raise RigError(f"rig {source}: no devices: add at least one of [turntable], [stewart], [camera], [ipjr.NAME]")
-    return Rig(name, source, turntable, stewart, camera, ipjrs, sim, description, data)
+    return Rig(name, source, turntable, stewart, camera, ipjrs, sim, description, data, calibration)
 
 
 def _link(t: _Table) -> Link:

@@ -1,0 +1,223 @@
+"""The rig inside the factor graph: every view's camera pose is a function of the commanded turntable
+angle and Stewart pose and of calibration variables the whole run shares.
+
+    structure_T_camera(k) = structure_T_world(0) · A · Rz(-a_k) · A^-1 · B · H_k · M
+
+- A = world_T_axis: the turntable's true axis is A's z axis.  Only its tilt (rotation about x, y)
+  and offset (x, y) are observable; its yaw and height are pinned at zero by a tight prior (they
+  are the gauge of "where on the axis, at which encoder zero").  The world frame is where the plate
+  sits at encoder zero, so structure_T_world(0) is the design's.
+- B = world_T_base (Stewart base), M = platform_T_camera (camera mount), both 6-dof.
+- H_k = home · stewart_pose_k: the platform pose the controller was told (legs are exact; their
+  per-move repeatability is the chain factor's noise, with the turntable's).
+
+`ChainFactor` is one GTSAM `CustomFactor` per view on (A, B, M, C_k): the view's camera variable
+stays, so tag observations remain plain C++ `BetweenFactorPose3`s and only one Python factor per
+view is added.  Its noise is the devices' repeatability, propagated to the camera at the prior.
+
+`corner_factor` is the reprojection of a tag's four corners through a pinhole camera whose
+intrinsics (Cal3_S2) are a variable too: the rig calibration survey (`estimation.rig_calibration`)
+uses it to carry the focal length and principal point, which a pose measurement cannot separate
+from the tag's depth.  Corners come undistorted with the camera file's distortion, so the
+intrinsics here are the distortion-free part only.
+
+Verification cannot buy a verdict with these variables: a module's tags are fresh variables with
+no prior, so before their own semantic factors join they carry no information about A, B or M;
+the calibration is fixed by the turntable tags and the modules already tied.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import gtsam
+import numpy as np
+
+from lab.config import CalibrationConfig, Rig
+from lab.geometry import Pose3, Rot3, from_xyzrpy
+from lab.rig_calibration import RigCalibration
+
+AXIS, BASE, MOUNT, INTRINSICS = (gtsam.symbol(c, 0) for c in "abmk")
+_E_RZ = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+_GAUGE_SIGMA = 1e-7
+
+
+@dataclass(frozen=True)
+class ViewMotion:
+    """What the rig was told for one view."""
+
+    turntable_rad: float
+    stewart_pose: tuple[float, ...]     # (x, y, z, roll, pitch, yaw) relative to home
+
+
+@dataclass(frozen=True)
+class RigGeometry:
+    """What the estimator knows of the rig: the rig file's nominal poses and its uncertainties."""
+
+    structure_T_world0: Pose3           # the design's structure frame at encoder zero, inverted
+    home_m: np.ndarray
+    nominal_world_T_base: Pose3
+    nominal_platform_T_camera: Pose3
+    K: np.ndarray                       # the camera file's intrinsics
+    config: CalibrationConfig
+
+    @staticmethod
+    def from_rig(rig: Rig, world_T_structure0: Pose3, K: np.ndarray) -> RigGeometry:
+        assert rig.stewart is not None and rig.camera is not None
+        return RigGeometry(world_T_structure0.inverse(), np.asarray(rig.stewart.geometry.home_m, float),
+                           rig.stewart.world_T_base, rig.camera.platform_T_camera, np.asarray(K, float),
+                           rig.calibration)
+
+    def H(self, motion: ViewMotion) -> Pose3:
+        return Pose3(Rot3(), self.home_m).compose(from_xyzrpy(motion.stewart_pose))
+
+    def predict(self, motion: ViewMotion, A: Pose3, B: Pose3, M: Pose3) -> Pose3:
+        """structure_T_camera for a view, given calibration values."""
+        Rz = Pose3(Rot3.Rz(-motion.turntable_rad), np.zeros(3))
+        return self.structure_T_world0.compose(A).compose(Rz).compose(A.inverse()).compose(B).compose(
+            self.H(motion)).compose(M)
+
+    def predict_nominal(self, motion: ViewMotion) -> Pose3:
+        return self.predict(motion, Pose3(), self.nominal_world_T_base, self.nominal_platform_T_camera)
+
+    # ---- priors ---------------------------------------------------------------------------------
+    def priors(self, calibration: RigCalibration | None) -> tuple[dict[int, Pose3], dict[int, np.ndarray]]:
+        """Prior means and covariances of A, B, M: a rig calibration file's, or the rig file's
+        nominal values with the `[calibration]` table's sigmas."""
+        c = self.config
+        gauge = np.array([c.turntable_axis_sigma_rad, c.turntable_axis_sigma_rad, _GAUGE_SIGMA,
+                          c.turntable_axis_sigma_m, c.turntable_axis_sigma_m, _GAUGE_SIGMA]) ** 2
+        if calibration is not None:
+            axis_cov = calibration.covariance["world_T_axis"].copy()
+            axis_cov[[2, 5], :] = 0.0
+            axis_cov[:, [2, 5]] = 0.0
+            axis_cov[2, 2] = axis_cov[5, 5] = _GAUGE_SIGMA ** 2
+            means = {AXIS: calibration.world_T_axis, BASE: calibration.world_T_base, MOUNT: calibration.platform_T_camera}
+            covs = {AXIS: axis_cov, BASE: calibration.covariance["world_T_base"],
+                    MOUNT: calibration.covariance["platform_T_camera"]}
+        else:
+            means = {AXIS: Pose3(), BASE: self.nominal_world_T_base, MOUNT: self.nominal_platform_T_camera}
+            covs = {AXIS: np.diag(gauge),
+                    BASE: np.diag([c.stewart_base_sigma_rad] * 3 + [c.stewart_base_sigma_m] * 3) ** 2,
+                    MOUNT: np.diag([c.camera_mount_sigma_rad] * 3 + [c.camera_mount_sigma_m] * 3) ** 2}
+        # priors are in the tangent at the mean; express the base's and mount's rotation sigmas,
+        # given in their parent frames, in their own frames
+        for key in (BASE, MOUNT):
+            if calibration is None:
+                R = means[key].rotation().matrix()
+                Ad = np.zeros((6, 6))
+                Ad[:3, :3] = R.T
+                Ad[3:, 3:] = R.T
+                covs[key] = Ad @ covs[key] @ Ad.T
+        return means, covs
+
+    def chain_noise(self, motion: ViewMotion, M: Pose3 | None = None) -> gtsam.noiseModel.Base:
+        """The devices' repeatability, propagated to the camera pose (its tangent)."""
+        c = self.config
+        M = M or self.nominal_platform_T_camera
+        AdM = M.inverse().AdjointMap()
+        S = np.diag([c.stewart_repeatability_rad] * 3 + [c.stewart_repeatability_m] * 3) ** 2
+        X2 = self.nominal_world_T_base.compose(self.H(motion)).compose(M)
+        j = -X2.inverse().AdjointMap() @ _E_RZ
+        cov = AdM @ S @ AdM.T + c.turntable_repeatability_rad ** 2 * np.outer(j, j) + np.eye(6) * 1e-12
+        return gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
+
+
+def chain_factor(geometry: RigGeometry, motion: ViewMotion, camera_key: int,
+                 noise: gtsam.noiseModel.Base | None = None) -> gtsam.CustomFactor:
+    """e = Log(P^-1 · C) with P the chain's prediction; Jacobians by the adjoint (checked against
+    numerical derivatives in tests/test_rig_model.py)."""
+    S0inv = geometry.structure_T_world0
+    Rz = Pose3(Rot3.Rz(-motion.turntable_rad), np.zeros(3))
+    H = geometry.H(motion)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
+        A = values.atPose3(AXIS)
+        B = values.atPose3(BASE)
+        M = values.atPose3(MOUNT)
+        C = values.atPose3(camera_key)
+        HM = H.compose(M)
+        X2 = A.inverse().compose(B).compose(HM)
+        X1 = Rz.compose(X2)
+        P = S0inv.compose(A).compose(X1)
+        E = P.inverse().compose(C)
+        e = Pose3.Logmap(E)
+        if jacobians is not None:
+            Jl = Pose3.LogmapDerivative(e)          # d Log(E Exp(x)) / dx
+            JP = -Jl @ E.inverse().AdjointMap()
+            jacobians[0] = JP @ (X1.inverse().AdjointMap() - X2.inverse().AdjointMap())
+            jacobians[1] = JP @ HM.inverse().AdjointMap()
+            jacobians[2] = JP
+            jacobians[3] = Jl
+        return e
+
+    return gtsam.CustomFactor(noise or geometry.chain_noise(motion), [AXIS, BASE, MOUNT, camera_key], error)
+
+
+def cal3_s2(K: np.ndarray) -> gtsam.Cal3_S2:
+    return gtsam.Cal3_S2(float(K[0, 0]), float(K[1, 1]), float(K[0, 1]), float(K[0, 2]), float(K[1, 2]))
+
+
+def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_corners_m: np.ndarray,
+                  sigma_px: float, intrinsics_key: int = INTRINSICS,
+                  robust_k: float | None = 3.0) -> gtsam.CustomFactor:
+    """Reprojection error (8-vector, px) of a tag's four corners.  `corners_px`: (4, 2)
+    undistorted measurements in pixels of the nominal pinhole; `tag_corners_m`: (4, 3) the
+    corners in the tag frame, in the same order."""
+    meas = np.asarray(corners_px, dtype=float).reshape(4, 2)
+    local = [np.asarray(p, dtype=float) for p in tag_corners_m]
+    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(8, sigma_px)
+    if robust_k:
+        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_k), noise)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
+        C = values.atPose3(camera_key)
+        T = values.atPose3(tag_key)
+        cam = gtsam.PinholeCameraCal3_S2(C, values.atCal3_S2(intrinsics_key))
+        e = np.zeros(8)
+        JC, JT, JK = np.zeros((8, 6)), np.zeros((8, 6)), np.zeros((8, 5))
+        Hp, Hl = np.zeros((3, 6), order="F"), np.zeros((3, 3), order="F")
+        Dp, Dpt, Dk = np.zeros((2, 6), order="F"), np.zeros((2, 3), order="F"), np.zeros((2, 5), order="F")
+        for i in range(4):
+            p = T.transformFrom(local[i], Hp, Hl)
+            try:
+                uv = cam.project(p, Dp, Dpt, Dk)
+            except RuntimeError:          # behind the camera: a large, flat error
+                e[2 * i:2 * i + 2] = 1e3
+                continue
+            e[2 * i:2 * i + 2] = uv - meas[i]
+            JC[2 * i:2 * i + 2] = Dp
+            JT[2 * i:2 * i + 2] = Dpt @ Hp
+            JK[2 * i:2 * i + 2] = Dk
+        if jacobians is not None:
+            jacobians[0], jacobians[1], jacobians[2] = JC, JT, JK
+        return e
+
+    return gtsam.CustomFactor(noise, [camera_key, tag_key, intrinsics_key], error)
+
+
+def undistort_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Corners with the lens distortion removed, in pixels of the pinhole K."""
+    import cv2
+
+    pts = np.asarray(corners_px, dtype=np.float64).reshape(-1, 1, 2)
+    return cv2.undistortPoints(pts, K, np.asarray(dist, float), P=K).reshape(-1, 2)
+
+
+def pose_sigmas(cov: np.ndarray) -> tuple[float, float]:
+    """(largest translation sigma m, largest rotation sigma rad) of a tangent covariance."""
+    return (float(math.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))),
+            float(math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))))
+
+
+def tangent_error(estimate: Pose3, truth: Pose3) -> np.ndarray:
+    """truth's deviation from the estimate in the estimate's tangent (for NEES)."""
+    return Pose3.Logmap(estimate.between(truth))
+
+
+def nees(estimate: Pose3, truth: Pose3, cov: np.ndarray, dims: Sequence[int] = range(6)) -> float:
+    d = list(dims)
+    e = tangent_error(estimate, truth)[d]
+    return float(e @ np.linalg.solve(cov[np.ix_(d, d)], e))

@@ -1,0 +1,135 @@
+"""A rig calibration: where the camera mount, the Stewart base and the turntable axis really are,
+the camera's corrected focal length and principal point, the turntable tags as glued, each with
+its uncertainty.  Written by `lab calibrate rig`, referenced from the rig's `[calibration] file`,
+read by `lab run borg` as the prior of the calibration it refines (docs/calibration.md).
+
+Frames (docs/architecture.md): `world` is where the turntable plate sits at encoder zero;
+`world_T_axis` is a frame whose z axis is the turntable's true rotation axis -- only its tilt
+(rotation about x and y) and where it crosses the plate (x, y) mean anything; its yaw and height
+are fixed at zero by convention.  Covariances are 6x6 in GTSAM's tangent order (rotation, then
+translation) at the estimate; the intrinsics' is 4x4 over (fx, fy, cx, cy).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lab.errors import UserError
+from lab.geometry import Pose3, from_xyzrpy, to_xyzrpy
+
+FORMAT = "lab.rig_calibration/1"
+POSES = ("platform_T_camera", "world_T_base", "world_T_axis")
+
+
+@dataclass(frozen=True)
+class RigCalibration:
+    platform_T_camera: Pose3
+    world_T_base: Pose3
+    world_T_axis: Pose3
+    K: np.ndarray                                   # 3x3, the camera file's distortion still applies
+    covariance: dict[str, np.ndarray]               # POSES -> 6x6, "K" -> 4x4 (fx, fy, cx, cy)
+    turntable_tags: dict[int, Pose3] = field(default_factory=dict)         # structure frame
+    turntable_tag_covariance: dict[int, np.ndarray] = field(default_factory=dict)
+    rms_px: float = float("nan")                    # corner reprojection RMS of the solve
+    views: int = 0
+    rig: str = ""
+    created: str = ""
+
+    def sigmas(self) -> dict[str, dict[str, float]]:
+        """1-sigma of each quantity in the units a person reads (mm, deg, px)."""
+        out: dict[str, dict[str, float]] = {}
+        for name in POSES:
+            d = np.sqrt(np.clip(np.diag(self.covariance[name]), 0.0, None))
+            out[name] = {"rot_deg": [math.degrees(x) for x in d[:3]], "xyz_mm": [x * 1e3 for x in d[3:]]}  # type: ignore[dict-item]
+        k = np.sqrt(np.clip(np.diag(self.covariance["K"]), 0.0, None))
+        out["K"] = {"fx_px": float(k[0]), "fy_px": float(k[1]), "cx_px": float(k[2]), "cy_px": float(k[3])}
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        def pose(p: Pose3, cov: np.ndarray | None) -> dict[str, Any]:
+            x = to_xyzrpy(p)
+            d: dict[str, Any] = {"xyz_m": [float(v) for v in x[:3]], "rpy_deg": [math.degrees(v) for v in x[3:]]}
+            if cov is not None:
+                d["covariance"] = np.asarray(cov, float).tolist()
+            return d
+        return {
+            "format": FORMAT, "rig": self.rig, "created": self.created or time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "views": self.views, "rms_px": self.rms_px,
+            **{name: pose(getattr(self, name), self.covariance[name]) for name in POSES},
+            "camera": {"fx_px": float(self.K[0, 0]), "fy_px": float(self.K[1, 1]), "cx_px": float(self.K[0, 2]),
+                       "cy_px": float(self.K[1, 2]), "covariance": np.asarray(self.covariance["K"], float).tolist()},
+            "turntable_tags": {str(t): pose(p, self.turntable_tag_covariance.get(t))
+                               for t, p in sorted(self.turntable_tags.items())},
+            "sigmas": self.sigmas(),
+        }
+
+    def save(self, path: str | Path) -> Path:
+        p = Path(path)
+        tmp = p.with_name(p.name + ".tmp")
+        tmp.write_text(json.dumps(self.to_json(), indent=1) + "\n")
+        tmp.replace(p)
+        return p
+
+
+def _pose(d: Any, where: str, src: str) -> tuple[Pose3, np.ndarray | None]:
+    try:
+        xyz = [float(v) for v in d["xyz_m"]]
+        rpy = [math.radians(float(v)) for v in d["rpy_deg"]]
+        if len(xyz) != 3 or len(rpy) != 3 or not all(map(math.isfinite, xyz + rpy)):
+            raise ValueError
+        cov = None
+        if "covariance" in d:
+            cov = np.asarray(d["covariance"], dtype=float)
+            if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+                raise ValueError
+    except (KeyError, TypeError, ValueError):
+        raise UserError(f"rig calibration {src}: {where}: expected {{xyz_m: [3], rpy_deg: [3], covariance: 6x6}}") from None
+    return from_xyzrpy([*xyz, *rpy]), cov
+
+
+def load_rig_calibration(path: str | Path) -> RigCalibration:
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise UserError(f"rig calibration {p}: no such file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"rig calibration {p}: not a readable JSON file ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise UserError(f"rig calibration {p}: format: expected {FORMAT!r} (written by `lab calibrate rig`)")
+    poses, covs = {}, {}
+    for name in POSES:
+        if name not in data:
+            raise UserError(f"rig calibration {p}: {name}: missing")
+        poses[name], c = _pose(data[name], name, str(p))
+        if c is None:
+            raise UserError(f"rig calibration {p}: {name}.covariance: missing")
+        covs[name] = c
+    cam = data.get("camera")
+    try:
+        K = np.array([[float(cam["fx_px"]), 0.0, float(cam["cx_px"])], [0.0, float(cam["fy_px"]), float(cam["cy_px"])],
+                      [0.0, 0.0, 1.0]])
+        covs["K"] = np.asarray(cam["covariance"], dtype=float)
+        if covs["K"].shape != (4, 4) or not np.all(np.isfinite(K)) or not np.all(np.isfinite(covs["K"])):
+            raise ValueError
+    except (KeyError, TypeError, ValueError):
+        raise UserError(f"rig calibration {p}: camera: expected fx_px, fy_px, cx_px, cy_px and a 4x4 covariance") from None
+    tags, tag_covs = {}, {}
+    for k, v in (data.get("turntable_tags") or {}).items():
+        try:
+            tid = int(k)
+        except ValueError:
+            raise UserError(f"rig calibration {p}: turntable_tags.{k}: not a tag id") from None
+        tags[tid], c = _pose(v, f"turntable_tags.{k}", str(p))
+        if c is not None:
+            tag_covs[tid] = c
+    return RigCalibration(poses["platform_T_camera"], poses["world_T_base"], poses["world_T_axis"], K, covs, tags,
+                          tag_covs, float(data.get("rms_px", float("nan"))), int(data.get("views", 0)),
+                          str(data.get("rig", "")), str(data.get("created", "")))

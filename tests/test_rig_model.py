@@ -1,0 +1,101 @@
+"""The rig inside the graph: the kinematic-chain factor and the tag-corner factor, against
+numerical derivatives and against the chain composed by hand."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from estimation.fiducials import tag_object_points
+from estimation.rig_model import (AXIS, BASE, INTRINSICS, MOUNT, RigGeometry, ViewMotion, cal3_s2, chain_factor,
+                                  corner_factor)
+from lab.config import load_rig
+from lab.geometry import Pose3, Rot3
+from lab.structures.borg import build_borg
+
+RIG = load_rig()
+MODEL = build_borg(3)
+K = np.array([[914.0, 0, 639.5], [0, 914.0, 359.5], [0, 0, 1]])
+GEOM = RigGeometry.from_rig(RIG, MODEL.world_T_structure(0.0), K)
+C = gtsam.symbol("c", 0)
+T = gtsam.symbol("t", 0)
+
+
+def _numerical(factor, values: gtsam.Values, key: int, d: int, eps: float = 1e-6) -> np.ndarray:
+    base = factor.unwhitenedError(values)
+    J = np.zeros((len(base), d))
+    for i in range(d):
+        v = gtsam.Values(values)
+        delta = gtsam.VectorValues()
+        dx = np.zeros(d)
+        dx[i] = eps
+        delta.insert(key, dx)
+        J[:, i] = (factor.unwhitenedError(v.retract(delta)) - base) / eps
+    return J
+
+
+def _analytic(factor, values: gtsam.Values) -> list[np.ndarray]:
+    A, _ = factor.linearize(values).jacobian()        # whitened: the noise's sqrt information applied
+    out, col = [], 0
+    for key in factor.keys():
+        d = 5 if key == INTRINSICS else 6
+        out.append(A[:, col:col + d])
+        col += d
+    return out
+
+
+def _values(perturb: bool = True) -> gtsam.Values:
+    rng = np.random.default_rng(3)
+    v = gtsam.Values()
+    small = (lambda s: Pose3.Expmap(rng.normal(0, s, 6))) if perturb else (lambda s: Pose3())
+    v.insert(AXIS, Pose3(Rot3.RzRyRx(0.0004, -0.0003, 0.0), np.array([0.002, -0.0015, 0.0])))
+    v.insert(BASE, RIG.stewart.world_T_base.compose(small(0.01)))
+    v.insert(MOUNT, RIG.camera.platform_T_camera.compose(small(0.01)))
+    return v
+
+
+def test_the_chain_predicts_the_camera_as_composed_by_hand():
+    motion = ViewMotion(0.7, (0.01, -0.02, 0.03, 0.02, -0.05, 0.04))
+    v = _values()
+    A, B, M = (v.atPose3(k) for k in (AXIS, BASE, MOUNT))
+    world_T_structure = A.compose(Pose3(Rot3.Rz(0.7), np.zeros(3))).compose(A.inverse()).compose(
+        MODEL.world_T_structure(0.0))
+    by_hand = world_T_structure.inverse().compose(B).compose(Pose3(Rot3(), GEOM.home_m)).compose(
+        Pose3.Expmap(np.zeros(6))).compose(gtsam.Pose3(Rot3.RzRyRx(0.02, -0.05, 0.04), np.array([0.01, -0.02, 0.03]))
+                                           ).compose(M)
+    assert GEOM.predict(motion, A, B, M).equals(by_hand, 1e-12)
+
+
+def test_chain_factor_jacobians_match_numerical_derivatives():
+    motion = ViewMotion(-1.2, (0.0, 0.04, -0.02, 0.0, 0.1, -0.05))
+    v = _values()
+    cam = GEOM.predict(motion, *(v.atPose3(k) for k in (AXIS, BASE, MOUNT))).compose(
+        Pose3.Expmap(np.array([1e-4, -2e-4, 1e-4, 3e-4, -1e-4, 2e-4])))
+    v.insert(C, cam)
+    f = chain_factor(GEOM, motion, C, gtsam.noiseModel.Unit.Create(6))
+    analytic = _analytic(f, v)
+    for key, J in zip(f.keys(), analytic):
+        assert J == pytest.approx(_numerical(f, v, key, 6), abs=2e-5)
+    assert np.linalg.norm(f.unwhitenedError(v)) < 1e-3
+
+
+def test_corner_factor_jacobians_match_numerical_derivatives_and_reproject_exactly():
+    v = gtsam.Values()
+    cam = Pose3(Rot3.RzRyRx(-np.pi / 2 + 0.1, 0.05, -np.pi / 2 + 0.2), np.array([-2.0, 0.1, 0.7]))
+    tag = Pose3(Rot3.RzRyRx(np.pi / 2, 0.0, -np.pi / 2 + 0.3), np.array([0.0, 0.2, 0.6]))
+    v.insert(C, cam)
+    v.insert(T, tag)
+    v.insert(INTRINSICS, cal3_s2(K))
+    local = tag_object_points(0.1)
+    pinhole = gtsam.PinholeCameraCal3_S2(cam, cal3_s2(K))
+    corners = np.array([pinhole.project(tag.transformFrom(p)) for p in local])
+    f = corner_factor(C, T, corners, local, 0.1, robust_k=None)
+    assert np.abs(f.unwhitenedError(v)).max() < 1e-9
+    bumped = corners + 0.5
+    f = corner_factor(C, T, bumped, local, 0.1, robust_k=None)
+    analytic = _analytic(f, v)
+    for key, J in zip(f.keys(), analytic):
+        d = 5 if key == INTRINSICS else 6
+        num = _numerical(f, v, key, d, eps=1e-6 if d == 6 else 1e-4)
+        assert J * 0.1 == pytest.approx(num, rel=1e-3, abs=1e-2)     # unwhitened: sigma 0.1 px
