@@ -1,10 +1,17 @@
 """GraphSLAM and SF-GraphSLAM on GTSAM (paper §2.5, design.md §5).
 
-Variables: one camera pose per survey view and one pose per tag, all in the structure frame.
+Variables: one camera pose per survey view and one pose per tag, all in the structure frame; with
+a rig model (`rig=`), also the rig's calibration (turntable axis, Stewart base, camera mount:
+estimation/rig_model.py), shared by every view of the run.
 Factors, a few lines per type below:
-- camera prior (noise R): the camera pose from the rig's kinematics (turntable angle, Stewart pose,
-  camera mount).  The rig's encoders are absolute, so every view gets its own prior: the paper's
-  first-pose anchor plus odometry g(u_t, x_{t-1}) with the same noise, without accumulating it;
+- camera (noise R), one of two kinds:
+  * with a rig model, a kinematic chain factor per view: the camera is a function of the commanded
+    turntable angle and Stewart pose and of the calibration variables, up to the devices'
+    repeatability.  The calibration starts from a rig calibration file or from the rig file's
+    nominal values with wide priors, and every view refines it; the turntable tags get priors at
+    their designed (or calibrated) poses, which fix the structure frame;
+  * without one (studies), a prior at the camera pose from the rig's kinematics: the paper's
+    first-pose anchor plus odometry g(u_t, x_{t-1}) with the same noise, without accumulating it;
 - tag observation (noise Q from the detector: growing with distance, frontal tilt, residual; Huber
   kernel): BetweenFactorPose3(camera, tag, camera_T_tag);
 - semantic (noise S), SF-GraphSLAM only: BetweenFactorPose3(tag a, tag b, designed tag_a_T_tag_b)
@@ -30,7 +37,9 @@ import gtsam
 import numpy as np
 
 from estimation.fiducials import Detection
+from estimation.rig_model import AXIS, BASE, MOUNT, RigGeometry, ViewMotion, chain_factor
 from estimation.semantics import DeployCheck, deployable_check
+from lab.rig_calibration import RigCalibration
 from lab.geometry import Pose3, Rot3
 from lab.structures.borg import BorgModel
 
@@ -76,9 +85,12 @@ class RelationState:
 class SfGraphSlam:
     """The factor graph of one BORG survey campaign (a whole procedure, or one study trial)."""
 
-    def __init__(self, model: BorgModel, config: SlamConfig | None = None) -> None:
+    def __init__(self, model: BorgModel, config: SlamConfig | None = None, *, rig: RigGeometry | None = None,
+                 calibration: RigCalibration | None = None) -> None:
         self.model = model
         self.config = config or SlamConfig()
+        self.rig = rig
+        self.calibration = calibration
         c = self.config
         self.camera_noise = gtsam.noiseModel.Diagonal.Sigmas(
             np.array([c.camera_sigma_rad] * 3 + [c.camera_sigma_m] * 3))
@@ -103,6 +115,47 @@ class SfGraphSlam:
         self._batch_solved = False                       # the estimate came from solve_batch, not iSAM2
         self._batch_marginals: gtsam.Marginals | None = None
         self.generation: dict[int, int] = {}             # tag -> how many times it was re-placed
+        if rig is not None:
+            means, covs = rig.priors(calibration)
+            for key in (AXIS, BASE, MOUNT):
+                self._add(gtsam.PriorFactorPose3(key, means[key], gtsam.noiseModel.Gaussian.Covariance(covs[key])))
+                self._value(key, means[key])
+            self.estimate = gtsam.Values(self.initial)
+
+    def _turntable_tag_prior(self, tag: int) -> None:
+        """The turntable tags fix the structure frame: at their design poses, known to the rig's
+        [calibration] turntable_tag_sigma, or where a rig calibration found them."""
+        assert self.rig is not None
+        cal = self.calibration
+        if cal is not None and tag in cal.turntable_tags and tag in cal.turntable_tag_covariance:
+            mean, cov = cal.turntable_tags[tag], cal.turntable_tag_covariance[tag]
+        else:
+            sig = self.rig.config.turntable_tag_sigma_m
+            mean = self.model.tags[tag].structure_T_tag
+            cov = np.diag([sig / self.model.tags[tag].size_m] * 3 + [sig] * 3) ** 2
+        self._add(gtsam.PriorFactorPose3(self.key(tag), mean, gtsam.noiseModel.Gaussian.Covariance(cov)))
+
+    def predicted_camera(self, motion: ViewMotion) -> Pose3:
+        """structure_T_camera for a view from the current calibration estimate."""
+        assert self.rig is not None
+        return self.rig.predict(motion, *(self.estimate.atPose3(k) for k in (AXIS, BASE, MOUNT)))
+
+    def calibration_estimate(self) -> dict[str, Pose3]:
+        return {"world_T_axis": self.estimate.atPose3(AXIS), "world_T_base": self.estimate.atPose3(BASE),
+                "platform_T_camera": self.estimate.atPose3(MOUNT)}
+
+    def calibration_covariance(self) -> dict[str, np.ndarray]:
+        out = {}
+        for name, key in (("world_T_axis", AXIS), ("world_T_base", BASE), ("platform_T_camera", MOUNT)):
+            out[name] = self._marginals_of(key)
+        return out
+
+    def _marginals_of(self, key: int) -> np.ndarray:
+        if self._batch_solved:
+            if self._batch_marginals is None:
+                self._batch_marginals = gtsam.Marginals(self.graph, self.estimate)
+            return self._batch_marginals.marginalCovariance(key)
+        return self.isam.marginalCovariance(key)
 
     def key(self, tag: int) -> int:
         return _T(tag + GENERATION * self.generation.get(tag, 0))
@@ -122,11 +175,20 @@ class SfGraphSlam:
                 rel.deploy = None
 
     # ---- building the graph -------------------------------------------------------------------
-    def add_view(self, structure_T_camera: Pose3, detections: Sequence[Detection]) -> int:
-        """A survey view: the camera pose from the kinematics and what the detector saw."""
+    def add_view(self, structure_T_camera: Pose3 | None, detections: Sequence[Detection],
+                 motion: ViewMotion | None = None) -> int:
+        """A survey view: the camera pose from the kinematics (or, with a rig model, the commanded
+        motion, through the calibration) and what the detector saw."""
         k = self.n_views
         self.n_views += 1
-        self._add(gtsam.PriorFactorPose3(C(k), structure_T_camera, self.camera_noise))
+        if self.rig is not None:
+            if motion is None:
+                raise ValueError("a graph with a rig model needs each view's commanded motion")
+            structure_T_camera = self.predicted_camera(motion)
+            self._add(chain_factor(self.rig, motion, C(k)))
+        else:
+            assert structure_T_camera is not None
+            self._add(gtsam.PriorFactorPose3(C(k), structure_T_camera, self.camera_noise))
         self._value(C(k), structure_T_camera)
         c = self.config
         for d in detections:
@@ -143,6 +205,8 @@ class SfGraphSlam:
             if d.tag_id not in self.tags:
                 self.tags.add(d.tag_id)
                 self._value(self.key(d.tag_id), structure_T_camera.compose(d.camera_T_tag))
+                if self.rig is not None and self.model.tags[d.tag_id].module == "turntable":
+                    self._turntable_tag_prior(d.tag_id)
             self.observations[d.tag_id] = self.observations.get(d.tag_id, 0) + 1
         return k
 

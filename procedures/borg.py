@@ -91,9 +91,17 @@ class BorgProcedure:
         for mod in modules:
             placed.append(mod.name)
             self.surveys[mod.name] = self.planner.plan(mod.name, placed)
+        from estimation.rig_model import RigGeometry
         from procedures.borg_measure import Measurement
 
-        self.measure = Measurement(self.model, self.intrinsics, estimator_config)
+        self.rig_geometry = RigGeometry.from_rig(rig, self.model.world_T_structure(0.0), self.intrinsics.K)
+        self.rig_calibration = None
+        if rig.calibration.file is not None:
+            from lab.rig_calibration import load_rig_calibration
+
+            self.rig_calibration = load_rig_calibration(rig.calibration.file)
+        self.measure = Measurement(self.model, self.intrinsics, estimator_config, rig=self.rig_geometry,
+                                   calibration=self.rig_calibration)
         self.results: dict[str, ModuleResult] = {}
         self.views_done: list[dict[str, Any]] = []     # every view taken, for checkpoints / replay
         self.homed = False
@@ -253,7 +261,8 @@ class BorgProcedure:
         so the estimate (and every later verdict) is the one an uninterrupted run would have."""
         from procedures.borg_measure import Measurement
 
-        self.measure = Measurement(self.model, self.intrinsics, self.measure.config)
+        self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self.rig_geometry,
+                                   calibration=self.rig_calibration)
         self.views_done = list(state.get("views", []))
         by_step: dict[tuple[int, int], list[dict]] = {}
         for v in self.views_done:

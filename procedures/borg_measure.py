@@ -10,7 +10,9 @@ from typing import Any
 import numpy as np
 
 from estimation.fiducials import Detection, TagDetector
+from estimation.rig_model import RigGeometry, ViewMotion
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
+from lab.rig_calibration import RigCalibration
 from estimation.tag_elimination import eliminate_tags
 from estimation.verification import Tolerances, Verdict, verify_module
 from lab.geometry import Pose3, from_xyzquat, to_xyzquat
@@ -19,11 +21,18 @@ from lab.structures.borg import BorgModel
 
 
 class Measurement:
-    def __init__(self, model: BorgModel, intrinsics: Any, config: dict[str, Any] | None = None) -> None:
+    def __init__(self, model: BorgModel, intrinsics: Any, config: dict[str, Any] | None = None, *,
+                 rig: RigGeometry | None = None, calibration: RigCalibration | None = None) -> None:
         self.model = model
         self.config = dict(config or {})
-        self.detector = TagDetector(intrinsics.K, intrinsics.dist, {t: s.size_m for t, s in model.tags.items()})
-        self.slam = SfGraphSlam(model, SlamConfig(semantic=self.config.get("semantic", True)))
+        self.rig = rig
+        self.calibration = calibration
+        # the detector reads through the calibrated camera: a rig calibration corrects the focal
+        # length and principal point of the camera file (its distortion stays)
+        K = calibration.K if calibration is not None else intrinsics.K
+        self.detector = TagDetector(K, intrinsics.dist, {t: s.size_m for t, s in model.tags.items()})
+        self.slam = SfGraphSlam(model, SlamConfig(semantic=self.config.get("semantic", True)), rig=rig,
+                                calibration=calibration)
         self.tolerances = Tolerances()
         self.cutoff_m = float(self.config.get("elimination_cutoff_m", 0.05))
         self.rejected_tags: set[int] = set()
@@ -71,7 +80,9 @@ class Measurement:
         self.last_views = []
         for v in views:
             structure_T_camera = Pose3(np.asarray(v["structure_T_camera"]))
-            self.last_views.append(self.slam.add_view(structure_T_camera, self.detections_from_json(v["detections"])))
+            motion = ViewMotion(float(v["turntable_rad"]), tuple(float(x) for x in v["stewart_pose"]))
+            self.last_views.append(self.slam.add_view(structure_T_camera, self.detections_from_json(v["detections"]),
+                                                      motion=motion if self.rig is not None else None))
         self._measured[module] = self.slam.update(snapshot=self.model.module_by_name[module].tags)
         self._eliminate()
 

@@ -1,0 +1,319 @@
+"""Rig calibration from a survey of tags at known (roughly known) places: the turntable axis, the
+Stewart base, the camera mount, the camera's focal length and principal point, and the turntable
+tags as glued, in one GTSAM graph (`lab calibrate rig`, and the first step of a `lab run borg`
+that has no calibration file).
+
+1. Each view's camera pose from all its tags' corners at their design poses (OpenCV `solvePnP`).
+2. An initial Stewart base and camera mount from OpenCV's `calibrateRobotWorldHandEye` on those
+   poses and the commanded platform poses (the turntable axis starts at its nominal place).
+3. Refinement in GTSAM (Levenberg–Marquardt): per view a kinematic chain factor
+   (estimation/rig_model.py), per tag sighting the reprojection of its four corners through a
+   pinhole whose intrinsics are a variable; priors from the rig's `[calibration]` table (nominal
+   poses, wide), the camera file's intrinsics and the turntable tags' design poses.
+4. Marginal covariances, the corner residuals, and a conditioning check: a quantity the survey
+   could not pin down to its limit is named, with what the survey lacked.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import cv2
+import gtsam
+import numpy as np
+
+from estimation.fiducials import tag_object_points
+from estimation.rig_model import (AXIS, BASE, INTRINSICS, MOUNT, RigGeometry, ViewMotion, cal3_s2, chain_factor,
+                                  corner_factor, undistort_px)
+from lab.geometry import Pose3, Rot3, to_xyzrpy
+from lab.rig_calibration import RigCalibration
+
+C = gtsam.symbol_shorthand.C
+T = gtsam.symbol_shorthand.T
+
+
+@dataclass(frozen=True)
+class TagSighting:
+    tag_id: int
+    corners_px: np.ndarray            # (4, 2) as detected (distorted), aruco order
+
+
+@dataclass(frozen=True)
+class CalibrationView:
+    motion: ViewMotion
+    sightings: tuple[TagSighting, ...]
+
+
+@dataclass(frozen=True)
+class Limits:
+    """The largest 1-sigma a usable calibration may have (docs/calibration.md).  Past these a
+    calibration would not be worth more than the rig file's nominal values to a run (which refines
+    it anyway): the survey could not see that quantity."""
+
+    mount_m: float = 0.0015
+    mount_rad: float = math.radians(0.05)
+    base_m: float = 0.002
+    base_rad: float = math.radians(0.05)
+    axis_m: float = 0.001
+    axis_rad: float = math.radians(0.03)
+    focal_rel: float = 0.002
+    principal_point_px: float = 2.0
+
+
+@dataclass
+class RigSolution:
+    calibration: RigCalibration
+    residuals_px: np.ndarray               # per corner, |reprojection error|
+    problems: list[str] = field(default_factory=list)   # poorly conditioned quantities, one line each
+    initial: dict[str, Pose3] = field(default_factory=dict)
+    iterations: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+def view_pose_pnp(sightings: Sequence[TagSighting], tags: Mapping[int, tuple[Pose3, float]], K: np.ndarray,
+                  dist: np.ndarray) -> Pose3 | None:
+    """structure_T_camera from every corner of a view's tags at their design poses."""
+    obj, img = [], []
+    for s in sightings:
+        if s.tag_id not in tags:
+            continue
+        pose, size = tags[s.tag_id]
+        obj.extend(pose.transformFrom(p) for p in tag_object_points(size))
+        img.extend(np.asarray(s.corners_px, float))
+    if len(obj) < 4:
+        return None
+    obj_a, img_a = np.asarray(obj, np.float64), np.asarray(img, np.float64)
+    flag = cv2.SOLVEPNP_IPPE if len(obj) == 4 else cv2.SOLVEPNP_SQPNP
+    ok, rvec, tvec = cv2.solvePnP(obj_a, img_a, K, np.asarray(dist, float), flags=flag)
+    if not ok:
+        return None
+    if len(obj) > 4:
+        rvec, tvec = cv2.solvePnPRefineLM(obj_a, img_a, K, np.asarray(dist, float), rvec, tvec)
+    R, _ = cv2.Rodrigues(rvec)
+    return Pose3(Rot3(R), tvec.ravel()).inverse()
+
+
+def hand_eye(views: Sequence[CalibrationView], cameras: Sequence[Pose3 | None], geometry: RigGeometry
+             ) -> tuple[Pose3, Pose3] | None:
+    """(world_T_base, platform_T_camera) by OpenCV's robot-world/hand-eye calibration (Shah's
+    method), from the views' camera poses in the world (turntable axis nominal)."""
+    R_w2c, t_w2c, R_b2g, t_b2g = [], [], [], []
+    for v, s_T_c in zip(views, cameras):
+        if s_T_c is None:
+            continue
+        world_T_structure = geometry.structure_T_world0.inverse()
+        world_T_camera = Pose3(Rot3.Rz(v.motion.turntable_rad), np.zeros(3)).compose(world_T_structure).compose(s_T_c)
+        cw = world_T_camera.inverse()
+        gb = geometry.H(v.motion).inverse()
+        R_w2c.append(cw.rotation().matrix())
+        t_w2c.append(cw.translation().reshape(3, 1))
+        R_b2g.append(gb.rotation().matrix())
+        t_b2g.append(gb.translation().reshape(3, 1))
+    if len(R_w2c) < 3:
+        return None
+    R_b2w, t_b2w, R_g2c, t_g2c = cv2.calibrateRobotWorldHandEye(R_w2c, t_w2c, R_b2g, t_b2g)
+    B = Pose3(Rot3(R_b2w), np.asarray(t_b2w).ravel())
+    M = Pose3(Rot3(R_g2c), np.asarray(t_g2c).ravel()).inverse()
+    return B, M
+
+
+def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.ndarray,
+              tags: Mapping[int, tuple[Pose3, float]], *, turntable_tags: Sequence[int] = (),
+              corner_sigma_px: float = 0.15, limits: Limits | None = None, rig_name: str = "",
+              max_iterations: int = 60, passes: int = 2) -> RigSolution:
+    """Calibrate the rig from `views`.  `tags`: every tag that may be seen, id -> (design
+    structure_T_tag, size); `turntable_tags` among them get a pose variable with a design prior
+    (the rig's turntable_tag_sigma), the others are held at their design poses by a tight prior."""
+    limits = limits or Limits()
+    K0 = geometry.K
+    cfg = geometry.config
+    cams = [view_pose_pnp(v.sightings, tags, K0, dist) for v in views]
+    he = hand_eye(views, cams, geometry)
+    B0, M0 = he if he is not None else (geometry.nominal_world_T_base, geometry.nominal_platform_T_camera)
+    means, covs = geometry.priors(None)
+    K_und = K0
+    est = None
+    for _ in range(max(1, passes)):
+        graph, values, seen, n_views = _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und,
+                                              means, covs, B0, M0, est)
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        params.setRelativeErrorTol(1e-8)
+        params.setAbsoluteErrorTol(1e-10)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        est = opt.optimize()
+        # the lens distortion acts on the true camera's normalised coordinates: undistort again
+        # through the intrinsics just estimated (0.25 % of focal length moves a corner at the
+        # image edge by ~0.1 px, as much as the corner noise)
+        K_und = est.atCal3_S2(INTRINSICS).K()
+    assert est is not None
+    marg = gtsam.Marginals(graph, est)
+    cal = est.atCal3_S2(INTRINSICS)
+    K = cal.K()
+    kcov5 = marg.marginalCovariance(INTRINSICS)          # fx, fy, s, u0, v0
+    idx = [0, 1, 3, 4]
+    cov = {"world_T_axis": marg.marginalCovariance(AXIS), "world_T_base": marg.marginalCovariance(BASE),
+           "platform_T_camera": marg.marginalCovariance(MOUNT), "K": kcov5[np.ix_(idx, idx)]}
+    tt = set(turntable_tags)
+    tag_poses = {t: est.atPose3(T(t)) for t in sorted(seen & tt)}
+    tag_covs = {t: marg.marginalCovariance(T(t)) for t in tag_poses}
+    residuals = _residuals(views, est, K_und, dist, tags)
+    calibration = RigCalibration(est.atPose3(MOUNT), est.atPose3(BASE), est.atPose3(AXIS), K, cov, tag_poses,
+                                 tag_covs, float(np.sqrt(np.mean(residuals ** 2))) if residuals.size else float("nan"),
+                                 n_views, rig_name)
+    problems = conditioning_problems(calibration, views, limits)
+    return RigSolution(calibration, residuals, problems, {"world_T_base": B0, "platform_T_camera": M0},
+                       opt.iterations())
+
+
+def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, means, covs, B0, M0, start):
+    """The calibration graph; `start` (a previous solution) seeds the values."""
+    K0 = geometry.K
+    cfg = geometry.config
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for key in (AXIS, BASE, MOUNT):
+        graph.add(gtsam.PriorFactorPose3(key, means[key], gtsam.noiseModel.Gaussian.Covariance(covs[key])))
+    values.insert(AXIS, Pose3())
+    values.insert(BASE, B0)
+    values.insert(MOUNT, M0)
+    f = float(K0[0, 0])
+    graph.add(gtsam.PriorFactorCal3_S2(INTRINSICS, cal3_s2(K0), gtsam.noiseModel.Diagonal.Sigmas(np.array(
+        [cfg.focal_sigma * f, cfg.focal_sigma * f, 1e-6, cfg.principal_point_sigma_px, cfg.principal_point_sigma_px]))))
+    values.insert(INTRINSICS, cal3_s2(K0))
+    tt = set(turntable_tags)
+    seen: set[int] = set()
+    n_views = 0
+    for k, v in enumerate(views):
+        usable = [s for s in v.sightings if s.tag_id in tags]
+        if not usable:
+            continue
+        n_views += 1
+        graph.add(chain_factor(geometry, v.motion, C(k)))
+        values.insert(C(k), geometry.predict(v.motion, Pose3(), B0, M0))
+        for s in usable:
+            pose, size = tags[s.tag_id]
+            if s.tag_id not in seen:
+                seen.add(s.tag_id)
+                sig = cfg.turntable_tag_sigma_m if s.tag_id in tt else 1e-6
+                graph.add(gtsam.PriorFactorPose3(T(s.tag_id), pose, gtsam.noiseModel.Diagonal.Sigmas(
+                    np.array([sig / size] * 3 + [sig] * 3))))
+                values.insert(T(s.tag_id), pose)
+            graph.add(corner_factor(C(k), T(s.tag_id), undistort_px(s.corners_px, K_und, dist),
+                                    tag_object_points(size), corner_sigma_px))
+    if start is not None:
+        values = gtsam.Values(start)
+    return graph, values, seen, n_views
+
+
+def _residuals(views: Sequence[CalibrationView], est: gtsam.Values, K_und: np.ndarray, dist: np.ndarray,
+               tags: Mapping[int, tuple[Pose3, float]]) -> np.ndarray:
+    cam_model = est.atCal3_S2(INTRINSICS)
+    out = []
+    for k, v in enumerate(views):
+        if not est.exists(C(k)):
+            continue
+        cam = gtsam.PinholeCameraCal3_S2(est.atPose3(C(k)), cam_model)
+        for s in v.sightings:
+            if s.tag_id not in tags or not est.exists(T(s.tag_id)):
+                continue
+            pose = est.atPose3(T(s.tag_id))
+            meas = undistort_px(s.corners_px, K_und, dist)
+            for p, m in zip(tag_object_points(tags[s.tag_id][1]), meas):
+                out.append(float(np.linalg.norm(cam.project(pose.transformFrom(p)) - m)))
+    return np.asarray(out)
+
+
+def _span_deg(views: Sequence[CalibrationView], i: int) -> float:
+    vals = [math.degrees(v.motion.stewart_pose[i]) for v in views]
+    return (max(vals) - min(vals)) if vals else 0.0
+
+
+def conditioning_problems(cal: RigCalibration, views: Sequence[CalibrationView], limits: Limits) -> list[str]:
+    """Each quantity whose 1-sigma exceeds its limit, with what the survey lacked."""
+    problems = []
+    span = f"platform roll / pitch / yaw spans {_span_deg(views, 3):.0f} / {_span_deg(views, 4):.0f} / " \
+           f"{_span_deg(views, 5):.0f} deg"
+    angles = [math.degrees(v.motion.turntable_rad) for v in views]
+    tt_span = f"turntable angles span {max(angles) - min(angles):.0f} deg" if angles else "no views"
+    checks = (
+        ("platform_T_camera", "camera mount", limits.mount_m, limits.mount_rad,
+         f"the mount is seen through platform rotations: it needs them about at least two axes ({span})"),
+        ("world_T_base", "Stewart base", limits.base_m, limits.base_rad,
+         f"the base is seen through the platform's motion and the turntable tags ({span}; {tt_span})"),
+        ("world_T_axis", "turntable axis", limits.axis_m, limits.axis_rad,
+         f"the axis is seen by turning the structure: it needs views over a wide turntable range ({tt_span})"),
+    )
+    for name, label, lim_m, lim_rad, why in checks:
+        sd = np.sqrt(np.clip(np.diag(cal.covariance[name]), 0.0, None))
+        dims = [0, 1, 3, 4] if name == "world_T_axis" else range(6)
+        for i in dims:
+            is_rot = i < 3
+            lim = lim_rad if is_rot else lim_m
+            if sd[i] > lim:
+                comp = ("roll", "pitch", "yaw", "x", "y", "z")[i]
+                value = f"{math.degrees(sd[i]):.3f} deg" if is_rot else f"{sd[i] * 1000:.2f} mm"
+                limit = f"{math.degrees(lim):.3f} deg" if is_rot else f"{lim * 1000:.2f} mm"
+                problems.append(f"{name} ({label}) {comp}: 1 sigma {value} exceeds {limit}; {why}")
+    ksd = np.sqrt(np.clip(np.diag(cal.covariance["K"]), 0.0, None))
+    f = float(cal.K[0, 0])
+    for i, comp in enumerate(("fx", "fy")):
+        if ksd[i] / f > limits.focal_rel:
+            problems.append(f"camera {comp}: 1 sigma {100 * ksd[i] / f:.2f} % exceeds {100 * limits.focal_rel:.2f} %; "
+                            f"the focal length needs tags at several depths across the image")
+    for i, comp in ((2, "cx"), (3, "cy")):
+        if ksd[i] > limits.principal_point_px:
+            problems.append(f"camera {comp}: 1 sigma {ksd[i]:.2f} px exceeds {limits.principal_point_px:.2f} px; "
+                            f"the principal point needs platform rotations and tags across the image")
+    return problems
+
+
+def truth_error(cal: RigCalibration, *, world_T_base: Pose3, platform_T_camera: Pose3, world_T_axis: Pose3,
+                K: np.ndarray | None = None) -> dict[str, float]:
+    """Errors of a calibration against a known truth (simulation): metres and radians."""
+    def split(est: Pose3, truth: Pose3) -> tuple[float, float]:
+        d = est.between(truth)
+        return float(np.linalg.norm(truth.translation() - est.translation())), float(
+            np.linalg.norm(Rot3.Logmap(d.rotation())))
+    mm, mr = split(cal.platform_T_camera, platform_T_camera)
+    bm, br = split(cal.world_T_base, world_T_base)
+    # the axis: where it crosses the plate (x, y) and its tilt; its yaw and height are gauge
+    axis_m = float(np.linalg.norm(cal.world_T_axis.translation()[:2] - world_T_axis.translation()[:2]))
+    za, zt = cal.world_T_axis.rotation().matrix()[:, 2], world_T_axis.rotation().matrix()[:, 2]
+    axis_rad = float(math.acos(min(1.0, float(za @ zt))))
+    out = {"camera_mount_m": mm, "camera_mount_rad": mr, "stewart_base_m": bm, "stewart_base_rad": br,
+           "turntable_axis_m": axis_m, "turntable_axis_rad": axis_rad}
+    if K is not None:
+        out["focal_rel"] = float(abs(cal.K[0, 0] / K[0, 0] - 1.0))
+        out["principal_point_px"] = float(np.linalg.norm(cal.K[:2, 2] - K[:2, 2]))
+    return out
+
+
+def nees_report(cal: RigCalibration, *, world_T_base: Pose3, platform_T_camera: Pose3) -> dict[str, float]:
+    """Normalised estimation error squared of the mount and the base (6-dof each: expect ~6)."""
+    out = {}
+    for name, truth in (("platform_T_camera", platform_T_camera), ("world_T_base", world_T_base)):
+        est = getattr(cal, name)
+        e = Pose3.Logmap(est.between(truth))
+        out[name] = float(e @ np.linalg.solve(cal.covariance[name], e))
+    return out
+
+
+def describe(cal: RigCalibration) -> dict[str, object]:
+    """The estimates with their sigmas, for `--json` and the console."""
+    s = cal.sigmas()
+    out: dict[str, object] = {}
+    for name in ("platform_T_camera", "world_T_base", "world_T_axis"):
+        x = to_xyzrpy(getattr(cal, name))
+        out[name] = {"xyz_mm": [float(v * 1e3) for v in x[:3]], "rpy_deg": [math.degrees(v) for v in x[3:]],
+                     "sigma_xyz_mm": s[name]["xyz_mm"], "sigma_rpy_deg": s[name]["rot_deg"]}
+    out["camera"] = {"fx_px": float(cal.K[0, 0]), "fy_px": float(cal.K[1, 1]), "cx_px": float(cal.K[0, 2]),
+                     "cy_px": float(cal.K[1, 2]), "sigma": s["K"]}
+    out["rms_px"] = cal.rms_px
+    out["views"] = cal.views
+    return out

@@ -1,0 +1,101 @@
+"""The rig calibration survey: turntable angles x Stewart poses that see the turntable tags, moved
+to and photographed through the drivers, then solved by `estimation.rig_calibration`.
+
+Used by `lab calibrate rig` and as the first step of a `lab run borg` whose rig has no calibration
+file.  The plan is made for observability: the mount is seen only through platform rotations, so
+the poses turn the platform about all three axes as far as the workspace allows while the camera
+still looks down at the rim (the turntable tags sit below the structure); the axis is seen by
+turning the plate, so the angles cover the turntable's whole range; the intrinsics are seen
+through tags at several depths across the image.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from estimation.rig_calibration import CalibrationView, TagSighting
+from estimation.rig_model import ViewMotion
+
+_D = math.radians
+# Relative to a pose that pitches the camera down at the rim tags: (x, y, z, roll, pitch, yaw).
+SURVEY_POSES: tuple[tuple[float, ...], ...] = (
+    (0.0, 0.0, 0.0, 0.0, _D(10), 0.0),
+    (0.0, 0.0, 0.0, _D(20), _D(10), 0.0),
+    (0.0, 0.0, 0.0, _D(-20), _D(10), 0.0),
+    (0.0, 0.0, -0.04, 0.0, _D(16), 0.0),
+    (0.0, 0.0, 0.04, 0.0, _D(5), 0.0),
+    (0.0, 0.1, 0.0, 0.0, _D(10), _D(18)),
+    (0.0, -0.1, 0.0, 0.0, _D(10), _D(-18)),
+    (0.05, 0.08, 0.02, _D(15), _D(14), _D(12)),
+    (-0.05, -0.08, -0.02, _D(-15), _D(7), _D(-12)),
+    (0.05, -0.08, 0.02, _D(15), _D(7), _D(-12)),
+    (-0.05, 0.08, -0.02, _D(-15), _D(14), _D(12)),
+)
+ANGLE_STEP_RAD = _D(30)
+
+
+@dataclass(frozen=True)
+class RigSurveyPlan:
+    views: tuple[ViewMotion, ...]
+    skipped: tuple[str, ...] = ()      # candidate poses the workspace refused, said once
+
+
+def plan_rig_survey(reachable: Callable[[Sequence[float]], bool], turntable_limits_rad: tuple[float, float],
+                    poses: Sequence[Sequence[float]] = SURVEY_POSES, angle_step_rad: float = ANGLE_STEP_RAD
+                    ) -> RigSurveyPlan:
+    """Every reachable survey pose at every turntable angle a full turn in `angle_step_rad` steps,
+    within the limits; poses alternate direction from one angle to the next (shorter moves)."""
+    lo, hi = turntable_limits_rad
+    start = max(lo, -math.pi / 2)
+    angles = [a for a in np.arange(start, start + 2 * math.pi - 1e-9, angle_step_rad) if lo <= a <= hi]
+    ok = [tuple(float(v) for v in p) for p in poses if reachable(p)]
+    skipped = tuple(f"platform pose {np.round(p, 3).tolist()} is outside the workspace" for p in poses
+                    if tuple(float(v) for v in p) not in ok)
+    views = []
+    for i, a in enumerate(angles):
+        for p in (ok if i % 2 == 0 else ok[::-1]):
+            views.append(ViewMotion(float(a), p))
+    return RigSurveyPlan(tuple(views), skipped)
+
+
+def capture(bench: Any, run: Any, plan: RigSurveyPlan, detector: Any, *, seed: Sequence[int] = (),
+            log_image: Callable[[Any, float], None] | None = None,
+            on_view: Callable[[int, ViewMotion, list[Any]], None] | None = None) -> list[CalibrationView]:
+    """Move to each planned view, grab, detect; returns what the solver needs.  In simulation the
+    camera's noise (and the devices' repeatability) is reseeded per view from `seed` + the view
+    index, so a re-run survey sees the same images."""
+    devices = bench.devices
+    tt, st, cam = devices.turntable, devices.stewart, devices.camera
+    bench.moved.update({tt.name, st.name})
+    out: list[CalibrationView] = []
+    for k, view in enumerate(plan.views):
+        with run.move(f"rig survey: turntable {math.degrees(view.turntable_rad):+.0f} deg") as progress:
+            tt.move_to(view.turntable_rad, progress)
+        with run.move("rig survey: Stewart platform") as progress:
+            st.move_to(view.stewart_pose, progress)
+        if bench.simulated:
+            bench.sim.world.reseed_camera([*seed, k])
+        frame = cam.grab()
+        if log_image is not None:
+            log_image(frame, frame.t_s)
+        detections = detector.detect(frame.image)
+        out.append(CalibrationView(view, tuple(TagSighting(d.tag_id, np.asarray(d.corners_px)) for d in detections)))
+        if on_view is not None:
+            on_view(k, view, detections)
+    return out
+
+
+def views_to_json(views: Sequence[CalibrationView]) -> list[dict[str, Any]]:
+    return [{"turntable_rad": v.motion.turntable_rad, "stewart_pose": list(v.motion.stewart_pose),
+             "sightings": [{"id": s.tag_id, "corners_px": np.asarray(s.corners_px).tolist()} for s in v.sightings]}
+            for v in views]
+
+
+def views_from_json(items: Sequence[dict[str, Any]]) -> list[CalibrationView]:
+    return [CalibrationView(ViewMotion(float(v["turntable_rad"]), tuple(float(x) for x in v["stewart_pose"])),
+                            tuple(TagSighting(int(s["id"]), np.asarray(s["corners_px"], float)) for s in v["sightings"]))
+            for v in items]
