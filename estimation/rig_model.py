@@ -162,10 +162,11 @@ def cal3_s2(K: np.ndarray) -> gtsam.Cal3_S2:
 
 def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_corners_m: np.ndarray,
                   sigma_px: float, intrinsics_key: int = INTRINSICS,
-                  robust_k: float | None = 3.0) -> gtsam.CustomFactor:
+                  robust_k: float | None = 3.0, fixed: gtsam.Cal3_S2 | None = None) -> gtsam.CustomFactor:
     """Reprojection error (8-vector, px) of a tag's four corners.  `corners_px`: (4, 2)
     undistorted measurements in pixels of the nominal pinhole; `tag_corners_m`: (4, 3) the
-    corners in the tag frame, in the same order."""
+    corners in the tag frame, in the same order.  With `fixed` intrinsics the factor is on the
+    camera and the tag only (a run: the intrinsics come from the rig calibration)."""
     meas = np.asarray(corners_px, dtype=float).reshape(4, 2)
     local = [np.asarray(p, dtype=float) for p in tag_corners_m]
     noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(8, sigma_px)
@@ -175,7 +176,7 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
         C = values.atPose3(camera_key)
         T = values.atPose3(tag_key)
-        cam = gtsam.PinholeCameraCal3_S2(C, values.atCal3_S2(intrinsics_key))
+        cam = gtsam.PinholeCameraCal3_S2(C, fixed if fixed is not None else values.atCal3_S2(intrinsics_key))
         e = np.zeros(8)
         JC, JT, JK = np.zeros((8, 6)), np.zeros((8, 6)), np.zeros((8, 5))
         Hp, Hl = np.zeros((3, 6), order="F"), np.zeros((3, 3), order="F")
@@ -192,10 +193,13 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
             JT[2 * i:2 * i + 2] = Dpt @ Hp
             JK[2 * i:2 * i + 2] = Dk
         if jacobians is not None:
-            jacobians[0], jacobians[1], jacobians[2] = JC, JT, JK
+            jacobians[0], jacobians[1] = JC, JT
+            if fixed is None:
+                jacobians[2] = JK
         return e
 
-    return gtsam.CustomFactor(noise, [camera_key, tag_key, intrinsics_key], error)
+    keys = [camera_key, tag_key] if fixed is not None else [camera_key, tag_key, intrinsics_key]
+    return gtsam.CustomFactor(noise, keys, error)
 
 
 def undistort_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:

@@ -37,7 +37,9 @@ import gtsam
 import numpy as np
 
 from estimation.fiducials import Detection
-from estimation.rig_model import AXIS, BASE, MOUNT, RigGeometry, ViewMotion, chain_factor
+from estimation.fiducials import tag_object_points
+from estimation.rig_model import (AXIS, BASE, MOUNT, RigGeometry, ViewMotion, cal3_s2, chain_factor, corner_factor,
+                                  undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.rig_calibration import RigCalibration
 from lab.geometry import Pose3, Rot3
@@ -69,6 +71,12 @@ class SlamConfig:
     height_tol_m: float = 0.005              # deployable fully deployed within this of its design lift
     relinearize_threshold: float = 0.001
     min_observations: int = 2                # views of both tags before a relation is decided
+    # How a tag sighting enters the graph: "pose" (the detector's IPPE pose with its covariance) or
+    # "corners" (the reprojection of its four corners through the calibrated camera, as TagSLAM
+    # does: a tag's tilt is then triangulated across views instead of read from one frontal view).
+    # "corners" needs the camera (`camera=` K, dist); the IPPE pose still initialises the tag.
+    observation: str = "pose"
+    corner_sigma_px: float = 0.15            # the detector's corner accuracy (edge-fit corners)
 
 
 @dataclass
@@ -86,9 +94,15 @@ class SfGraphSlam:
     """The factor graph of one BORG survey campaign (a whole procedure, or one study trial)."""
 
     def __init__(self, model: BorgModel, config: SlamConfig | None = None, *, rig: RigGeometry | None = None,
-                 calibration: RigCalibration | None = None) -> None:
+                 calibration: RigCalibration | None = None, camera: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.model = model
         self.config = config or SlamConfig()
+        if self.config.observation not in ("pose", "corners"):
+            raise ValueError(f"observation must be 'pose' or 'corners', got {self.config.observation!r}")
+        if self.config.observation == "corners" and camera is None:
+            raise ValueError("the corner observation model needs the camera (K, dist)")
+        self.camera = camera
+        self._cal = cal3_s2(camera[0]) if camera is not None else None
         self.rig = rig
         self.calibration = calibration
         c = self.config
@@ -194,14 +208,21 @@ class SfGraphSlam:
         for d in detections:
             if d.tag_id not in self.model.tags:
                 continue
-            if c.observation_sigma_m is not None or c.observation_sigma_rad is not None:
+            if c.observation == "corners":
+                assert self.camera is not None
+                K, dist = self.camera
+                self._add(corner_factor(C(k), self.key(d.tag_id), undistort_px(d.corners_px, K, dist),
+                                        tag_object_points(d.size_m), c.corner_sigma_px,
+                                        robust_k=c.huber_k * 2 if c.huber_k else None, fixed=self._cal))
+            elif c.observation_sigma_m is not None or c.observation_sigma_rad is not None:
                 gauss = self.fixed_observation_noise
             else:
                 cov = 0.5 * (d.covariance + d.covariance.T)
                 gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
-            noise = (gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k), gauss)
-                     if c.huber_k else gauss)
-            self._add(gtsam.BetweenFactorPose3(C(k), self.key(d.tag_id), d.camera_T_tag, noise))
+            if c.observation == "pose":
+                noise = (gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k), gauss)
+                         if c.huber_k else gauss)
+                self._add(gtsam.BetweenFactorPose3(C(k), self.key(d.tag_id), d.camera_T_tag, noise))
             if d.tag_id not in self.tags:
                 self.tags.add(d.tag_id)
                 self._value(self.key(d.tag_id), structure_T_camera.compose(d.camera_T_tag))

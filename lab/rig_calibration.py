@@ -102,13 +102,18 @@ def load_rig_calibration(path: str | Path) -> RigCalibration:
         raise UserError(f"rig calibration {p}: no such file") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise UserError(f"rig calibration {p}: not a readable JSON file ({exc})") from None
+    return rig_calibration_from_json(data, str(p))
+
+
+def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
+    """The record from its JSON form (a file, or a run's checkpoint)."""
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise UserError(f"rig calibration {p}: format: expected {FORMAT!r} (written by `lab calibrate rig`)")
     poses, covs = {}, {}
     for name in POSES:
         if name not in data:
             raise UserError(f"rig calibration {p}: {name}: missing")
-        poses[name], c = _pose(data[name], name, str(p))
+        poses[name], c = _pose(data[name], name, p)
         if c is None:
             raise UserError(f"rig calibration {p}: {name}.covariance: missing")
         covs[name] = c
@@ -127,7 +132,7 @@ def load_rig_calibration(path: str | Path) -> RigCalibration:
             tid = int(k)
         except ValueError:
             raise UserError(f"rig calibration {p}: turntable_tags.{k}: not a tag id") from None
-        tags[tid], c = _pose(v, f"turntable_tags.{k}", str(p))
+        tags[tid], c = _pose(v, f"turntable_tags.{k}", p)
         if c is not None:
             tag_covs[tid] = c
     return RigCalibration(poses["platform_T_camera"], poses["world_T_base"], poses["world_T_axis"], K, covs, tags,

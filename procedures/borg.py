@@ -13,6 +13,7 @@ Stewart pose of the whole procedure against the limits and the workspace.
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -55,7 +56,10 @@ class BorgProcedure:
     name = "borg"
 
     def __init__(self, bench: Bench, on_flag: str = "stop", n: int | None = None, max_modules: int | None = None,
-                 estimator_config: Any = None) -> None:
+                 estimator_config: Any = None, calibration: str | None = None, rig_survey: bool | None = None,
+                 observation: str | None = None, uncalibrated: bool = False) -> None:
+        """`calibration`: a rig calibration file (default: the rig's [calibration] file).
+        `rig_survey`: begin with a rig calibration survey (default: when there is no calibration)."""
         if on_flag not in ON_FLAG:
             raise UserError(f"--on-flag must be one of {', '.join(ON_FLAG)}, got {on_flag!r}")
         rig = bench.rig
@@ -96,11 +100,23 @@ class BorgProcedure:
 
         self.rig_geometry = RigGeometry.from_rig(rig, self.model.world_T_structure(0.0), self.intrinsics.K)
         self.rig_calibration = None
-        if rig.calibration.file is not None:
+        cal_file = calibration or rig.calibration.file
+        if cal_file is not None:
             from lab.rig_calibration import load_rig_calibration
 
-            self.rig_calibration = load_rig_calibration(rig.calibration.file)
-        self.measure = Measurement(self.model, self.intrinsics, estimator_config, rig=self.rig_geometry,
+            self.rig_calibration = load_rig_calibration(cal_file)
+        self.rig_survey = (self.rig_calibration is None) if rig_survey is None else bool(rig_survey)
+        self.uncalibrated = uncalibrated
+        if uncalibrated:
+            # the behaviour before rig calibration, kept for comparison: every camera pose held to
+            # the rig file's kinematics at 1 mm / 0.05 deg, no calibration variables, no survey
+            self.rig_survey = False
+            self.rig_calibration = None
+        self.rig_survey_result: dict[str, Any] | None = None
+        estimator_config = dict(estimator_config or {})
+        if observation is not None:
+            estimator_config["observation"] = observation
+        self.measure = Measurement(self.model, self.intrinsics, estimator_config, rig=self._rig_model(),
                                    calibration=self.rig_calibration)
         self.results: dict[str, ModuleResult] = {}
         self.views_done: list[dict[str, Any]] = []     # every view taken, for checkpoints / replay
@@ -108,14 +124,31 @@ class BorgProcedure:
 
     # ---- plan and dry run --------------------------------------------------------------------
     def plan(self) -> list[StepSpec]:
-        return [StepSpec(k, f"module {mod.name}", {"module": mod.name, "kind": mod.kind,
-                                                   "views": [v.label for v in self.surveys[mod.name].views]})
-                for k, mod in enumerate(self.modules)]
+        first = [StepSpec(0, "rig calibration", {"rig_survey": len(self._rig_survey_plan().views)})] if self.rig_survey else []
+        return first + [StepSpec(k + len(first), f"module {mod.name}",
+                                 {"module": mod.name, "kind": mod.kind,
+                                  "views": [v.label for v in self.surveys[mod.name].views]})
+                        for k, mod in enumerate(self.modules)]
+
+    def _rig_survey_plan(self):
+        from procedures.rig_survey import plan_rig_survey
+
+        rig = self.bench.rig
+        return plan_rig_survey(lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable,
+                               (rig.turntable.min_rad, rig.turntable.max_rad))
 
     def dry_run_problems(self, steps: list[StepSpec]) -> list[str]:
         tt, st = self.bench.devices.turntable, self.bench.devices.stewart
         problems = []
         for spec in steps:
+            if "rig_survey" in spec.params:
+                for v in self._rig_survey_plan().views:
+                    for check, arg in ((tt.check_angle, v.turntable_rad), (st.check_pose, v.stewart_pose)):
+                        try:
+                            check(arg)
+                        except Exception as exc:
+                            problems.append(f"{spec.name}: {exc}")
+                continue
             for v in self.surveys[spec.params["module"]].views:
                 try:
                     tt.check_angle(v.turntable_rad)
@@ -131,9 +164,12 @@ class BorgProcedure:
 
     # ---- one step ------------------------------------------------------------------------------
     def execute(self, spec: StepSpec, run: RunContext) -> None:
-        module = self.model.module_by_name[spec.params["module"]]
         if not self.homed:
             self._home(run)
+        if "rig_survey" in spec.params:
+            self._calibrate_rig(spec, run)
+            return
+        module = self.model.module_by_name[spec.params["module"]]
         run.operator.confirm(f"{'Deploy' if module.kind == 'deployable' else 'Place'} module {module.name} "
                              f"({module.kind.replace('_', ' ')}, tags {', '.join(map(str, module.tags))})")
         if self.bench.simulated:
@@ -172,6 +208,55 @@ class BorgProcedure:
         run.recorder.log_calibration(topics.CAMERA_CALIBRATION, K, dist, self.intrinsics.width_px,
                                      self.intrinsics.height_px, "camera")
         self.homed = True
+
+    def _calibrate_rig(self, spec: StepSpec, run: RunContext) -> None:
+        """No rig calibration to start from: survey the turntable tags first (the structure is not
+        there yet) and solve for the axis, base, mount and intrinsics, as `lab calibrate rig` does.
+        The solution, with its covariance, is the prior the run refines; a quantity the survey could
+        not pin down keeps a wide covariance, which is honest, and is reported as a warning."""
+        from estimation.rig_calibration import solve_rig
+        from procedures.borg_measure import Measurement
+        from procedures.rig_survey import capture
+
+        rec = run.recorder
+        rec.log_text("info", "no rig calibration: surveying the turntable tags to calibrate the rig")
+        plan = self._rig_survey_plan()
+        views = capture(self.bench, run, plan, self.measure.detector,
+                        seed=[self.bench.scenario.seed, _STREAM_CAMERA, spec.index],
+                        log_image=lambda frame, t: rec.log_image(topics.CAMERA_IMAGE, frame.image, t, "camera",
+                                                                 format=IMAGE_FORMAT))
+        tags = {t: (s.structure_T_tag, s.size_m) for t, s in self.model.tags.items() if s.module == "turntable"}
+        t0 = time.perf_counter()
+        sol = solve_rig(views, self.rig_geometry, self.intrinsics.dist, tags,
+                        turntable_tags=self.model.turntable.tag_ids, rig_name=self.bench.rig.name)
+        rec.log_metric("rig_calibration/solve_s", time.perf_counter() - t0, "s")
+        for problem in sol.problems:
+            rec.log_text("warning", f"rig calibration: {problem}")
+        self._use_rig_calibration(sol.calibration)
+        self.rig_survey_result = self._rig_survey_report(sol)
+        rec.log_text("info", "rig calibration: " + json.dumps(self.rig_survey_result))
+        self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self.rig_geometry,
+                                   calibration=self.rig_calibration)
+
+    def _rig_model(self):
+        return None if self.uncalibrated else self.rig_geometry
+
+    def _use_rig_calibration(self, cal: Any) -> None:
+        self.rig_calibration = cal
+
+    def _rig_survey_report(self, sol: Any) -> dict[str, Any]:
+        from estimation.rig_calibration import describe, nees_report, truth_error
+
+        out: dict[str, Any] = {"views": sol.calibration.views, "rms_px": sol.calibration.rms_px,
+                               "problems": list(sol.problems), "estimate": describe(sol.calibration)}
+        if self.bench.simulated:
+            tr = self.bench.sim.world.true_rig
+            out["truth_error"] = truth_error(sol.calibration, world_T_base=tr.world_T_base,
+                                             platform_T_camera=tr.platform_T_camera, world_T_axis=tr.world_T_axis,
+                                             K=self.bench.sim.world.camera.K)
+            out["nees"] = nees_report(sol.calibration, world_T_base=tr.world_T_base,
+                                      platform_T_camera=tr.platform_T_camera)
+        return out
 
     def _redeploy_in_world(self, name: str) -> None:
         """The operator re-deploys: in simulation the module comes out as designed this time."""
@@ -254,14 +339,21 @@ class BorgProcedure:
     def checkpoint(self) -> dict[str, Any]:
         return {"views": self.views_done, "results": {k: v.to_json() for k, v in self.results.items()},
                 "placed": list(self.bench.sim.world.borg.placed) if self.bench.simulated else [],
-                "homed": self.homed}
+                "homed": self.homed,
+                "rig_calibration": (self.rig_calibration.to_json() if self.rig_survey and self.rig_calibration
+                                    is not None else None),
+                "rig_survey": self.rig_survey_result}
 
     def restore(self, state: dict[str, Any], steps_done: list[StepSpec], run: RunContext) -> None:
         """Replay the completed steps' views into a fresh estimator, step by step as they happened,
         so the estimate (and every later verdict) is the one an uninterrupted run would have."""
+        from lab.rig_calibration import rig_calibration_from_json
         from procedures.borg_measure import Measurement
 
-        self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self.rig_geometry,
+        if state.get("rig_calibration") is not None:
+            self.rig_calibration = rig_calibration_from_json(state["rig_calibration"], "checkpoint")
+            self.rig_survey_result = state.get("rig_survey")
+        self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self._rig_model(),
                                    calibration=self.rig_calibration)
         self.views_done = list(state.get("views", []))
         by_step: dict[tuple[int, int], list[dict]] = {}
@@ -293,9 +385,14 @@ class BorgProcedure:
                             "sigma_position_m": r.sigma_position_m, "tags_seen": r.tags_seen,
                             "attempts": r.attempts})
         return {"result": result, "reason": reason, "structure": f"borg:{self.model.n}", "on_flag": self.on_flag,
+                "calibration": ("none (rig file trusted)" if self.uncalibrated else
+                                "survey" if self.rig_survey else "file" if self.rig_calibration is not None
+                                else "nominal priors"),
+                "observation": self.measure.slam.config.observation,
                 "simulated": self.bench.simulated, "modules": modules,
                 "rejected_tags": sorted(self.measure.rejected_tags), "steps": len(modules),
-                "views": len(self.views_done)}
+                "views": len(self.views_done), "rig_survey": self.rig_survey_result,
+                "rig_calibration_file": str(self.bench.rig.calibration.file) if self.bench.rig.calibration.file else None}
 
     def stop_devices(self) -> list[str]:
         return self.bench.stop_moved()

@@ -31,8 +31,9 @@ class Measurement:
         # length and principal point of the camera file (its distortion stays)
         K = calibration.K if calibration is not None else intrinsics.K
         self.detector = TagDetector(K, intrinsics.dist, {t: s.size_m for t, s in model.tags.items()})
-        self.slam = SfGraphSlam(model, SlamConfig(semantic=self.config.get("semantic", True)), rig=rig,
-                                calibration=calibration)
+        self.slam = SfGraphSlam(model, SlamConfig(semantic=self.config.get("semantic", True),
+                                                  observation=self.config.get("observation", "corners")),
+                                rig=rig, calibration=calibration, camera=(K, np.asarray(intrinsics.dist, float)))
         self.tolerances = Tolerances()
         self.cutoff_m = float(self.config.get("elimination_cutoff_m", 0.05))
         self.rejected_tags: set[int] = set()

@@ -13,6 +13,8 @@ BENCHES: dict[str, tuple[str, str]] = {
     "fiducials": ("estimation.bench_fiducials", "AprilTag detection time and pose error on rendered images"),
     "mle": ("estimation.bench_mle", "IPJR sequencing, MLE vs EKF vs open loop"),
     "run": ("procedures.bench_run", "end-to-end simulated procedure runs (BORG, tetrahelix)"),
+    "calibration": ("procedures.bench_calibration", "BORG verdicts and accuracy against rig-error size, with and "
+                                                    "without rig calibration"),
 }
 
 

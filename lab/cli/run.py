@@ -21,6 +21,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--n", type=int, default=None, help="BORG size (default: the rig's [sim] borg_n, else 3)")
     b.add_argument("--modules", type=int, default=None, metavar="K",
                    help="assemble only the first K modules (a short run)")
+    b.add_argument("--calibration", metavar="FILE",
+                   help="rig calibration file from `lab calibrate rig` (default: the rig's [calibration] file; "
+                        "without one the run begins with a rig calibration survey)")
+    b.add_argument("--no-rig-survey", action="store_true",
+                   help="without a calibration file, start from the rig file's nominal geometry and its wide "
+                        "priors instead of a calibration survey (the run still refines the calibration)")
+    b.add_argument("--uncalibrated", action="store_true",
+                   help="trust the rig file's geometry exactly, as before rig calibration existed (for comparison "
+                        "in benchmarks; a real rig is never that well known)")
+    b.add_argument("--observation", choices=("corners", "pose"), default=None,
+                   help="how a tag sighting enters SF-GraphSLAM: its four corners' reprojection (default) or the "
+                        "detector's single-view pose")
     b.set_defaults(func=_run_borg)
 
     t = rsub.add_parser("truss", help="IPJR truss assembly with MLE / EKF / open-loop correction")
@@ -80,7 +92,9 @@ def _build(procedure: str, params: dict[str, Any]):
         from procedures.borg import BorgProcedure
 
         proc = BorgProcedure(bench, on_flag=params.get("on_flag", "stop"), n=params.get("n"),
-                             max_modules=params.get("modules"))
+                             max_modules=params.get("modules"), calibration=params.get("calibration"),
+                             rig_survey=False if params.get("no_rig_survey") else None,
+                             observation=params.get("observation"), uncalibrated=bool(params.get("uncalibrated")))
         return proc, bench, f"borg:{proc.model.n}"
     except BaseException:
         bench.close()

@@ -1,0 +1,223 @@
+"""`lab bench calibration`: verdicts and accuracy of `lab run borg` against the size of the rig's
+errors, with and without rig calibration, over seeds.
+
+Each trial is a real `lab run borg` on the simulated bench (devices over their wire protocols,
+rendered images, the real detector), with a scenario that sets the seed, the rig's true errors
+(the sim rig's own `[sim.rig_error]` scaled by 0, 1, 2, ...: ideal to twice the default) and a set
+of structure faults.  Modes:
+- `calibrated`: what a run does by default with no calibration file: a rig calibration survey first,
+  then the calibration refined in the graph with every view (corner observations);
+- `uncalibrated`: the behaviour before rig calibration: the rig file trusted as exact (camera pose
+  priors at 1 mm / 0.05 deg from its kinematics, single-view pose observations).
+Figures: false flags on good modules, faults caught, good-module position and rotation error
+against the simulated truth, the rig calibration's error against the truth and its NEES, the SLAM
+step time and the run's wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+# Faults among the first 9 modules, so --quick sees them all: a partial deployment and a 15 mm
+# offset must be flagged, a displaced tag rejected (its module unverified), a 2 mm offset passed.
+FAULTS = """
+[[borg.fault]]
+kind = "partial_deploy"
+module = "3D"
+height_m = 0.35
+
+[[borg.fault]]
+kind = "module_offset"
+module = "7S"
+offset_m = [0.0, 0.015, 0.0]
+
+[[borg.fault]]
+kind = "tag_displaced"
+tag = 12
+offset_m = [0.0, 0.3, 0.0]
+
+[[borg.fault]]
+kind = "module_offset"
+module = "8S"
+offset_m = [0.002, 0.0, 0.0]
+"""
+EXPECT = {"3D": "flagged", "7S": "flagged", "9S": "unverified"}
+MODES = {"calibrated": [], "uncalibrated": ["--uncalibrated", "--observation", "pose"]}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="2 seeds x 9 modules x rig errors 0 and 2x default")
+    p.add_argument("--seeds", type=int, default=None, help="seeds per configuration (default 10; --quick 2)")
+    p.add_argument("--modules", type=int, default=None, help="modules per run (default 27; --quick 9)")
+    p.add_argument("--scales", default=None, help="rig-error sizes, times the default (default 0,1,2)")
+    p.add_argument("--modes", default="calibrated,uncalibrated", help="calibrated, uncalibrated or both")
+    p.add_argument("--speedup", type=float, default=100.0, help="simulated device speed-up (default 100)")
+    p.add_argument("--json", action="store_true", help="print the figures as JSON")
+    p.add_argument("--out", default="bench_out/calibration", help="directory for the runs (default bench_out/calibration)")
+
+
+def _scenario(seed: int, scale: float) -> str:
+    from lab.config import load_rig
+
+    e = load_rig().sim.rig_error.scaled(scale)
+    lines = [f"seed = {seed}", "", "[rig_error]"]
+    if e.ideal:
+        lines.append("ideal = true")
+    else:
+        for k, v in e.to_dict().items():
+            lines.append(f"{k} = {list(v) if isinstance(v, tuple) else v}")
+    return "\n".join(lines) + "\n" + FAULTS
+
+
+def _median_metric(path: Path, name: str) -> float:
+    from lab.recorder import topics
+    from lab.recorder.reader import iter_messages
+
+    vals = sorted(m.message.value for m in iter_messages(path) if m.topic == topics.METRICS and m.message.name == name)
+    return vals[len(vals) // 2] if vals else float("nan")
+
+
+def trial(out: Path, seed: int, scale: float, mode: str, modules: int, speedup: float) -> dict[str, Any]:
+    d = out / f"{mode}-x{scale:g}-seed{seed}"
+    d.parent.mkdir(parents=True, exist_ok=True)
+    sc = out / f"scenario-x{scale:g}-seed{seed}.toml"
+    sc.write_text(_scenario(seed, scale))
+    if (d / "summary.json").exists():
+        (d / "summary.json").unlink()
+    for f in d.glob("*"):
+        f.unlink()
+    cmd = [sys.executable, "-m", "lab", "run", "borg", "--auto", "--quiet", "--on-flag", "continue", "--scenario",
+           str(sc), "--modules", str(modules), "--speedup", str(speedup), "--out", str(d), *MODES[mode]]
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if not (d / "summary.json").exists():
+        raise RuntimeError(f"{' '.join(cmd)} failed: {r.stderr.strip()[-500:]}")
+    s = json.loads((d / "summary.json").read_text())
+    mods = s["modules"]
+    good = [m for m in mods if m["name"] not in EXPECT]
+    res: dict[str, Any] = {
+        "seed": seed, "scale": scale, "mode": mode, "result": s["result"], "wall_s": wall,
+        "good": len(good), "false_flags": sum(m["verdict"] != "ok" for m in good),
+        "false_flagged": [m["name"] for m in good if m["verdict"] != "ok"],
+        "faults_caught": sum(1 for m in mods if m["name"] in EXPECT and m["verdict"] == EXPECT[m["name"]]),
+        "faults": sum(1 for m in mods if m["name"] in EXPECT),
+        "position_errors_m": [m["position_error_m"] for m in good if m["position_error_m"] is not None],
+        "rotation_errors_rad": [m["rotation_error_rad"] for m in good if m["rotation_error_rad"] is not None],
+        "slam_update_s_median": _median_metric(d / "run.mcap", "slam/update_s"),
+    }
+    survey = s.get("rig_survey")
+    if survey:
+        res["calibration_truth_error"] = survey.get("truth_error")
+        res["calibration_nees"] = survey.get("nees")
+        res["calibration_problems"] = survey.get("problems")
+    return res
+
+
+def _aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    groups: dict[tuple[str, float], list[dict[str, Any]]] = {}
+    for t in trials:
+        groups.setdefault((t["mode"], t["scale"]), []).append(t)
+    rows = []
+    for (mode, scale), ts in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1])):
+        pos = np.concatenate([t["position_errors_m"] for t in ts]) if ts else np.array([])
+        rot = np.concatenate([t["rotation_errors_rad"] for t in ts]) if ts else np.array([])
+        good = sum(t["good"] for t in ts)
+        row: dict[str, Any] = {
+            "mode": mode, "rig_error_scale": scale, "runs": len(ts), "good_modules": good,
+            "false_flags": sum(t["false_flags"] for t in ts),
+            "false_flag_rate": sum(t["false_flags"] for t in ts) / max(good, 1),
+            "faults_caught": f"{sum(t['faults_caught'] for t in ts)}/{sum(t['faults'] for t in ts)}",
+            "position_error_mm_median": float(np.median(pos) * 1e3) if pos.size else None,
+            "position_error_mm_max": float(pos.max() * 1e3) if pos.size else None,
+            "rotation_error_deg_median": float(np.degrees(np.median(rot))) if rot.size else None,
+            "rotation_error_deg_max": float(np.degrees(rot.max())) if rot.size else None,
+            "slam_update_ms_median": float(np.median([t["slam_update_s_median"] for t in ts]) * 1e3),
+            "wall_s_median": float(np.median([t["wall_s"] for t in ts])),
+        }
+        cal = [t["calibration_truth_error"] for t in ts if t.get("calibration_truth_error")]
+        if cal:
+            for key, unit in (("camera_mount_m", 1e3), ("stewart_base_m", 1e3), ("turntable_axis_m", 1e3)):
+                row[key.replace("_m", "_mm") + "_max"] = max(c[key] for c in cal) * unit
+            for key in ("camera_mount_rad", "stewart_base_rad"):
+                row[key.replace("_rad", "_deg") + "_max"] = math.degrees(max(c[key] for c in cal))
+            row["focal_percent_max"] = max(c.get("focal_rel", 0.0) for c in cal) * 100
+            nees = [t["calibration_nees"] for t in ts if t.get("calibration_nees")]
+            for key in ("platform_T_camera", "world_T_base"):
+                row[f"nees_{key}_mean"] = float(np.mean([n[key] for n in nees]))
+        rows.append(row)
+    return rows
+
+
+def to_markdown(res: dict[str, Any]) -> str:
+    lines = [f"`{res['command']}` ({res['runs']} runs, {res['wall_s']:.0f} s)", "",
+             "| mode | rig error | runs | false flags | faults caught | pos. error median / max (mm) | "
+             "rot. error median / max (deg) | SLAM step median (ms) | run wall median (s) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in res["rows"]:
+        def f(v, spec=".2f"):
+            return "—" if v is None else format(v, spec)
+        lines.append(f"| {r['mode']} | {r['rig_error_scale']:g}x default | {r['runs']} | "
+                     f"{r['false_flags']}/{r['good_modules']} ({100 * r['false_flag_rate']:.1f} %) | "
+                     f"{r['faults_caught']} | {f(r['position_error_mm_median'])} / {f(r['position_error_mm_max'])} | "
+                     f"{f(r['rotation_error_deg_median'], '.3f')} / {f(r['rotation_error_deg_max'], '.3f')} | "
+                     f"{r['slam_update_ms_median']:.1f} | {r['wall_s_median']:.0f} |")
+    cal_rows = [r for r in res["rows"] if "camera_mount_mm_max" in r]
+    if cal_rows:
+        lines += ["", "Rig calibration survey against the simulated truth (largest over the runs):", "",
+                  "| rig error | mount (mm / deg) | base (mm / deg) | axis (mm) | focal (%) | NEES mount / base (dim 6) |",
+                  "|---|---|---|---|---|---|"]
+        for r in cal_rows:
+            lines.append(f"| {r['rig_error_scale']:g}x | {r['camera_mount_mm_max']:.2f} / {r['camera_mount_deg_max']:.3f} | "
+                         f"{r['stewart_base_mm_max']:.2f} / {r['stewart_base_deg_max']:.3f} | "
+                         f"{r['turntable_axis_mm_max']:.2f} | {r['focal_percent_max']:.3f} | "
+                         f"{r['nees_platform_T_camera_mean']:.1f} / {r['nees_world_T_base_mean']:.1f} |")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    from lab.errors import UserError
+
+    seeds = args.seeds if args.seeds is not None else (2 if args.quick else 10)
+    modules = args.modules if args.modules is not None else (9 if args.quick else 27)
+    try:
+        scales = [float(x) for x in (args.scales or ("0,2" if args.quick else "0,1,2")).split(",")]
+    except ValueError:
+        raise UserError(f"--scales: expected numbers separated by commas, got {args.scales!r}") from None
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    bad = [m for m in modes if m not in MODES]
+    if bad or not modes:
+        raise UserError(f"--modes: expected calibrated and/or uncalibrated, got {args.modes!r}")
+    if not 1 <= modules <= 27 or seeds < 1 or any(not 0 <= s <= 2.5 for s in scales):
+        raise UserError("--modules must be in 1..27, --seeds >= 1, --scales in [0, 2.5]")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    trials = []
+    for mode in modes:
+        for scale in scales:
+            for seed in range(seeds):
+                trials.append(trial(out, seed, scale, mode, modules, args.speedup))
+                if not args.json:
+                    t = trials[-1]
+                    pe = max(t["position_errors_m"], default=float("nan")) * 1e3
+                    print(f"  {mode:<12} x{scale:g} seed {seed}: {t['false_flags']} false flags of {t['good']}, "
+                          f"faults {t['faults_caught']}/{t['faults']}, max position error {pe:.2f} mm", flush=True)
+    res = {"command": "lab bench calibration" + (" --quick" if args.quick else ""), "runs": len(trials),
+           "wall_s": time.perf_counter() - t0, "seeds": seeds, "modules": modules, "scales": scales,
+           "rows": _aggregate(trials), "trials": trials}
+    (out / "calibration.json").write_text(json.dumps(res, indent=1))
+    if args.json:
+        print(json.dumps({k: v for k, v in res.items() if k != "trials"}, indent=1))
+    else:
+        print(to_markdown(res))
+    return 0
