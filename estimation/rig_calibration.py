@@ -12,6 +12,16 @@ that has no calibration file).
    poses, wide), the camera file's intrinsics and the turntable tags' design poses.
 4. Marginal covariances, the corner residuals, and a conditioning check: a quantity the survey
    could not pin down to its limit is named, with what the survey lacked.
+
+Two things keep the covariances honest (measured on rendered surveys, docs/calibration.md):
+- tags seen too obliquely are left out: their corners are biased (0.09 px rms error up to 50 deg
+  incidence, 0.15 at 50-60, 0.37 at 60-70, 1.3 px at 70-80), and a biased corner is not noise a
+  sigma can cover.  The image says how oblique a tag is: the ratio of its shortest to its longest
+  side (undistorted) is about cos(incidence); below `min_side_ratio` (0.65, about 55-60 deg) the
+  sighting is dropped.
+- the corner noise is measured, not assumed: the first pass's whitened residuals give the
+  a-posteriori variance factor (chi2 / degrees of freedom), and the second pass uses the corner
+  sigma it implies, so the marginals reflect how well the corners were really found.
 """
 
 from __future__ import annotations
@@ -69,10 +79,34 @@ class RigSolution:
     problems: list[str] = field(default_factory=list)   # poorly conditioned quantities, one line each
     initial: dict[str, Pose3] = field(default_factory=dict)
     iterations: int = 0
+    oblique_dropped: int = 0               # sightings left out as too oblique (min_side_ratio)
+    corner_sigma_px: float = float("nan")  # the corner noise the final pass used (measured)
 
     @property
     def ok(self) -> bool:
         return not self.problems
+
+
+MIN_SIDE_RATIO = 0.65
+CORNER_SIGMA_FLOOR_PX = 0.05     # never trust corners better than this, whatever the residuals say
+
+
+def side_ratio(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> float:
+    """Shortest over longest side of a tag's undistorted quadrilateral: ~cos(incidence)."""
+    u = undistort_px(np.asarray(corners_px, float), K, dist)
+    sides = np.linalg.norm(np.roll(u, -1, axis=0) - u, axis=1)
+    return float(sides.min() / sides.max()) if sides.max() > 0 else 0.0
+
+
+def drop_oblique(views: Sequence[CalibrationView], K: np.ndarray, dist: np.ndarray,
+                 min_side_ratio: float = MIN_SIDE_RATIO) -> tuple[list[CalibrationView], int]:
+    """The views with their too-oblique sightings left out, and how many were."""
+    out, dropped = [], 0
+    for v in views:
+        keep = tuple(s for s in v.sightings if side_ratio(s.corners_px, K, dist) >= min_side_ratio)
+        dropped += len(v.sightings) - len(keep)
+        out.append(CalibrationView(v.motion, keep))
+    return out, dropped
 
 
 def view_pose_pnp(sightings: Sequence[TagSighting], tags: Mapping[int, tuple[Pose3, float]], K: np.ndarray,
@@ -116,7 +150,12 @@ def hand_eye(views: Sequence[CalibrationView], cameras: Sequence[Pose3 | None], 
         t_b2g.append(gb.translation().reshape(3, 1))
     if len(R_w2c) < 3:
         return None
-    R_b2w, t_b2w, R_g2c, t_g2c = cv2.calibrateRobotWorldHandEye(R_w2c, t_w2c, R_b2g, t_b2g)
+    try:
+        R_b2w, t_b2w, R_g2c, t_g2c = cv2.calibrateRobotWorldHandEye(R_w2c, t_w2c, R_b2g, t_b2g)
+    except cv2.error:
+        # degenerate motions (e.g. no platform rotation: "determinant(R) is null"): no start from
+        # OpenCV; the caller starts from the nominal rig and the conditioning check says what's missing
+        return None
     B = Pose3(Rot3(R_b2w), np.asarray(t_b2w).ravel())
     M = Pose3(Rot3(R_g2c), np.asarray(t_g2c).ravel()).inverse()
     return B, M
@@ -125,21 +164,26 @@ def hand_eye(views: Sequence[CalibrationView], cameras: Sequence[Pose3 | None], 
 def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.ndarray,
               tags: Mapping[int, tuple[Pose3, float]], *, turntable_tags: Sequence[int] = (),
               corner_sigma_px: float = 0.15, limits: Limits | None = None, rig_name: str = "",
-              max_iterations: int = 60, passes: int = 2) -> RigSolution:
+              max_iterations: int = 60, passes: int = 2, min_side_ratio: float = MIN_SIDE_RATIO,
+              measure_corner_sigma: bool = True) -> RigSolution:
     """Calibrate the rig from `views`.  `tags`: every tag that may be seen, id -> (design
     structure_T_tag, size); `turntable_tags` among them get a pose variable with a design prior
-    (the rig's turntable_tag_sigma), the others are held at their design poses by a tight prior."""
+    (the rig's turntable_tag_sigma), the others are held at their design poses by a tight prior.
+    `corner_sigma_px` is the first pass's corner noise; with `measure_corner_sigma` later passes
+    use the one the residuals imply.  Sightings flatter than `min_side_ratio` are left out."""
     limits = limits or Limits()
     K0 = geometry.K
     cfg = geometry.config
+    views, dropped = drop_oblique(views, K0, dist, min_side_ratio)
     cams = [view_pose_pnp(v.sightings, tags, K0, dist) for v in views]
     he = hand_eye(views, cams, geometry)
     B0, M0 = he if he is not None else (geometry.nominal_world_T_base, geometry.nominal_platform_T_camera)
     means, covs = geometry.priors(None)
     K_und = K0
     est = None
-    for _ in range(max(1, passes)):
-        graph, values, seen, n_views = _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und,
+    sigma = corner_sigma_px
+    for k in range(max(1, passes)):
+        graph, values, seen, n_views = _build(views, geometry, dist, tags, turntable_tags, sigma, K_und,
                                               means, covs, B0, M0, est)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
@@ -151,6 +195,8 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
         # through the intrinsics just estimated (0.25 % of focal length moves a corner at the
         # image edge by ~0.1 px, as much as the corner noise)
         K_und = est.atCal3_S2(INTRINSICS).K()
+        if measure_corner_sigma and k + 1 < passes:
+            sigma = _measured_corner_sigma(views, est, K_und, dist, tags, graph, sigma)
     assert est is not None
     marg = gtsam.Marginals(graph, est)
     cal = est.atCal3_S2(INTRINSICS)
@@ -168,7 +214,23 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
                                  n_views, rig_name)
     problems = conditioning_problems(calibration, views, limits)
     return RigSolution(calibration, residuals, problems, {"world_T_base": B0, "platform_T_camera": M0},
-                       opt.iterations())
+                       opt.iterations(), dropped, sigma)
+
+
+def _measured_corner_sigma(views, est, K_und, dist, tags, graph, sigma) -> float:
+    """The corner sigma the residuals imply: per-axis rms of the corner residuals over the degrees
+    of freedom they leave (observations minus the variables they determine: each view's camera
+    is fixed by its chain and counts nothing extra, each tag seen and the calibration count).
+    Huber-downweighted corners are counted as they are: this is the noise the fit saw."""
+    r = _residuals(views, est, K_und, dist, tags)
+    if r.size == 0:
+        return sigma
+    n_obs = 2 * r.size
+    n_tags = sum(1 for t in tags if est.exists(T(t)))
+    n_params = 6 * 3 + 4 + 6 * n_tags
+    dof = max(1, n_obs - n_params)
+    s = float(np.sqrt(np.sum(r ** 2) / dof))
+    return max(CORNER_SIGMA_FLOOR_PX, s)
 
 
 def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, means, covs, B0, M0, start):
