@@ -1,16 +1,20 @@
-"""`lab calibrate camera` (ChArUco intrinsic calibration) and `lab calibrate board` (a printable
-board).  docs/calibration.md; the work happens in procedures/calibrate.py."""
+"""`lab calibrate camera` (ChArUco intrinsic calibration), `lab calibrate board` (a printable
+board) and `lab calibrate rig` (camera mount, Stewart base, turntable axis from a survey of the
+turntable tags).  docs/calibration.md; the work happens in procedures/calibrate.py and
+procedures/calibrate_rig.py."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from pathlib import Path
 from typing import Any
 
 DEFAULT_OUT = "camera_calibration.json"
+DEFAULT_RIG_OUT = "rig_calibration.json"
 # procedures.calibrate holds the defaults; it imports OpenCV, so `lab --help` must not import it.
 # These strings only describe them (a test checks they agree).
 _HELP_BOARD = "9x6:30:22:DICT_5X5_100"
@@ -19,7 +23,7 @@ _HELP_MIN_FRAMES = 8
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("calibrate", help="calibrate a device (camera intrinsics with a ChArUco board)")
+    p = sub.add_parser("calibrate", help="calibrate the camera (ChArUco intrinsics) and the rig (camera mount, Stewart base, turntable axis)")
     csub = p.add_subparsers(dest="what", metavar="WHAT")
     csub.required = True
 
@@ -53,6 +57,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--save-frames", metavar="DIR", help="--sim: also write the rendered frames to DIR as PNG")
     c.add_argument("--json", action="store_true", help="print the result as JSON instead of the report")
     c.set_defaults(func=_camera)
+
+    r = csub.add_parser(
+        "rig", help="camera mount, Stewart base and turntable axis from a survey of the turntable tags",
+        description="Rig calibration: the Stewart platform and the turntable move the camera through a survey of the "
+                    "turntable's rim tags; OpenCV's robot-world/hand-eye calibration gives a first solution, GTSAM "
+                    "refines it with the focal length, principal point and the tags as glued. Writes the rig "
+                    "calibration file the rig's [calibration] file key references, with 1-sigma uncertainties and "
+                    "residuals, and refuses (exit 2, nothing written) when a parameter is poorly conditioned. "
+                    "Run it after `lab calibrate camera` (docs/calibration.md).")
+    r.add_argument("--rig", metavar="FILE", help="rig file (default: the simulated bench, lab/rigs/sim.toml)")
+    r.add_argument("--scenario", metavar="FILE", help="simulation scenario: seed, noise, [rig_error] (docs/scenarios.md)")
+    r.add_argument("--out", metavar="FILE", default=DEFAULT_RIG_OUT,
+                   help=f"rig calibration file to write (default {DEFAULT_RIG_OUT}); point the rig's [calibration] "
+                        f"file at it")
+    r.add_argument("--force", action="store_true", help="replace --out if it exists")
+    r.add_argument("--angle-step-deg", type=float, default=30.0, metavar="DEG",
+                   help="turntable step between survey angles (default 30: the rim tags' spacing; larger is a "
+                        "quicker, coarser survey)")
+    r.add_argument("--run-dir", metavar="DIR", help="where the run's MCAP log goes (default runs/calibrate-rig-<time>)")
+    r.add_argument("--auto", action="store_true", help="answer operator prompts automatically (simulation)")
+    r.add_argument("--dry-run", action="store_true", help="check every planned move against limits; move nothing")
+    r.add_argument("--speedup", type=float, default=None, help="simulated devices move this many times faster")
+    r.add_argument("--quiet", action="store_true", help="no progress bars")
+    r.add_argument("--json", action="store_true",
+                   help="print the estimates with their sigmas (and, in simulation, the errors against the truth) as JSON")
+    r.set_defaults(func=_rig)
 
     b = csub.add_parser("board", help="write a printable ChArUco board image (PNG or PDF at true scale)")
     b.add_argument("--board", metavar="SPEC", help=f"board spec (default {_HELP_BOARD})")
@@ -194,6 +224,122 @@ def _rig_hint(rig: Any, out: Path) -> str:
     if rel.startswith(".."):
         rel = str(out.resolve())   # a path climbing out of the rig's folder reads better absolute
     return (f"to use it, set in the rig file's [camera] table: calibration = \"{rel}\"  "
+            f"(a relative path is taken from the rig file's folder)")
+
+
+# ---- lab calibrate rig ------------------------------------------------------------------------
+
+
+def _rig(args: argparse.Namespace) -> int:
+    import time
+
+    from lab.errors import UserError
+    from lab.recorder import RunRecorder
+    from procedures import runner
+    from procedures.calibrate_rig import RigCalibrationProcedure
+    from procedures.setup import open_bench
+
+    t0 = time.perf_counter()
+    out = Path(args.out)
+    if out.is_dir():
+        raise UserError(f"--out {out} is a directory; give a file name such as {out / DEFAULT_RIG_OUT}")
+    if out.exists() and not args.force and not args.dry_run:
+        raise UserError(f"--out {out} already exists; choose another file or add --force to replace it")
+    if args.speedup is not None and not args.speedup > 0:
+        raise UserError(f"--speedup {args.speedup}: must be a positive factor")
+    if not 5.0 <= args.angle_step_deg <= 180.0:
+        raise UserError(f"--angle-step-deg {args.angle_step_deg}: must be 5..180 degrees")
+    run_dir = Path(args.run_dir) if args.run_dir else Path("runs") / f"calibrate-rig-{time.strftime('%Y%m%d-%H%M%S')}"
+    if not args.dry_run and (run_dir / runner.RUN_FILE).exists():
+        raise UserError(f"--run-dir {run_dir} already holds a run; choose another")
+    bench = open_bench(args.rig, args.scenario, speedup=args.speedup, only=None)
+    try:
+        proc = RigCalibrationProcedure(bench, out, angle_step_rad=math.radians(args.angle_step_deg))
+    except BaseException:
+        bench.close()
+        raise
+    if args.dry_run:
+        try:
+            return runner.dry_run(proc)
+        finally:
+            proc.close()
+    params = {k: v for k, v in vars(args).items() if k not in ("func", "command", "what")}
+    info = {"procedure": proc.name, "params": params, "structure": f"borg:{proc.model.n}", "argv": sys.argv}
+
+    def recorder_factory(path: Path) -> RunRecorder:
+        rec = RunRecorder(path, proc.name, params, rig=bench.rig.data, scenario=bench.scenario.to_dict(),
+                          structure=f"borg:{proc.model.n}")
+        bench.relay.target = rec.comms_sink
+        rec.log_design(f"borg:{proc.model.n}", proc.model)
+        return rec
+
+    outcome = runner.run(proc, run_dir, info=info, operator_auto=bool(args.auto), recorder_factory=recorder_factory,
+                         show_progress=not (args.quiet or args.json))
+    summary = dict(outcome.summary)
+    summary["run"] = str(run_dir / runner.RUN_FILE)
+    summary["wall_s"] = time.perf_counter() - t0
+    problems = proc.result.problems
+    if args.json:
+        print(json.dumps(summary, indent=2, default=float))
+    else:
+        for line in _rig_report(summary):
+            print(line)
+    for p in problems:       # one line per poorly conditioned parameter, on stderr like every error
+        print(f"lab: error: {p}", file=sys.stderr)
+    if problems:
+        print(f"lab: error: rig calibration not written ({len(problems)} poorly conditioned "
+              f"parameter{'s' if len(problems) > 1 else ''}); run: {summary['run']}", file=sys.stderr)
+        return 2
+    if outcome.result != "completed":
+        print(f"lab: {outcome.result}: {outcome.reason}; run: {summary['run']}", file=sys.stderr)
+        return outcome.exit_code
+    if not args.json:
+        print(_rig_calibration_hint(bench.rig, out))
+    return 0
+
+
+def _rig_report(s: dict[str, Any]) -> list[str]:
+    """The console report: each estimate with its 1 sigma, the residuals, the errors against the truth."""
+    lines = [f"rig calibration from {s['views']} views ({s['sightings']} tag sightings); run {s['run']}"]
+    est = s.get("estimates")
+    if est:
+        names = {"platform_T_camera": "camera mount", "world_T_base": "Stewart base", "world_T_axis": "turntable axis"}
+        for key, label in names.items():
+            e = est[key]
+            xyz = " ".join(f"{v:+9.2f}+-{sd:.2f}" for v, sd in zip(e["xyz_mm"], e["sigma_xyz_mm"]))
+            rpy = " ".join(f"{v:+8.3f}+-{sd:.3f}" for v, sd in zip(e["rpy_deg"], e["sigma_rpy_deg"]))
+            lines.append(f"  {label:<15} xyz mm {xyz}   rpy deg {rpy}")
+        c = est["camera"]
+        sg = c["sigma"]
+        lines.append(f"  {'camera':<15} fx {c['fx_px']:.2f}+-{sg['fx_px']:.2f} fy {c['fy_px']:.2f}+-{sg['fy_px']:.2f} "
+                     f"cx {c['cx_px']:.2f}+-{sg['cx_px']:.2f} cy {c['cy_px']:.2f}+-{sg['cy_px']:.2f} px")
+        r = s["residuals_px"]
+        lines.append(f"  corner residuals: rms {r['rms']:.3f} px, 95 % {r['p95']:.3f} px, max {r['max']:.3f} px "
+                     f"over {r['corners']} corners; solve {s['solve_s']:.1f} s")
+    te = s.get("truth_error")
+    if te:
+        lines.append(f"  against the simulated truth: camera mount {te['camera_mount_m'] * 1e3:.2f} mm / "
+                     f"{math.degrees(te['camera_mount_rad']):.4f} deg, Stewart base {te['stewart_base_m'] * 1e3:.2f} mm / "
+                     f"{math.degrees(te['stewart_base_rad']):.4f} deg, turntable axis {te['turntable_axis_m'] * 1e3:.2f} mm"
+                     f" / {math.degrees(te['turntable_axis_rad']):.4f} deg; NEES mount "
+                     f"{s['nees']['platform_T_camera']:.1f}, base {s['nees']['world_T_base']:.1f} (6 expected)")
+    if s.get("written"):
+        lines.append(f"wrote {s['written']}  ({s['wall_s']:.0f} s)")
+    return lines
+
+
+def _rig_calibration_hint(rig: Any, out: Path) -> str:
+    f = rig.calibration.file
+    if f is not None and Path(f).resolve() == out.resolve():
+        return f"the rig's [calibration] file already points at {out}"
+    where = Path(rig.source).parent if Path(rig.source).exists() else Path.cwd()
+    try:
+        rel = os.path.relpath(out.resolve(), where.resolve())
+    except ValueError:
+        rel = ".."
+    if rel.startswith(".."):
+        rel = str(out.resolve())
+    return (f"to use it, set in the rig file: [calibration] file = \"{rel}\"  "
             f"(a relative path is taken from the rig file's folder)")
 
 
