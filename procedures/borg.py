@@ -214,7 +214,6 @@ class BorgProcedure:
         there yet) and solve for the axis, base, mount and intrinsics, as `lab calibrate rig` does.
         The solution, with its covariance, is the prior the run refines; a quantity the survey could
         not pin down keeps a wide covariance, which is honest, and is reported as a warning."""
-        from estimation.rig_calibration import solve_rig
         from procedures.borg_measure import Measurement
         from procedures.rig_survey import capture
 
@@ -225,24 +224,30 @@ class BorgProcedure:
                         seed=[self.bench.scenario.seed, _STREAM_CAMERA, spec.index],
                         log_image=lambda frame, t: rec.log_image(topics.CAMERA_IMAGE, frame.image, t, "camera",
                                                                  format=IMAGE_FORMAT))
-        tags = {t: (s.structure_T_tag, s.size_m) for t, s in self.model.tags.items() if s.module == "turntable"}
+        from procedures.rig_survey import views_to_json
+
+        self.rig_survey_views = views_to_json(views)
         t0 = time.perf_counter()
-        sol = solve_rig(views, self.rig_geometry, self.intrinsics.dist, tags,
-                        turntable_tags=self.model.turntable.tag_ids, rig_name=self.bench.rig.name)
+        sol = self._solve_rig_survey(views)
         rec.log_metric("rig_calibration/solve_s", time.perf_counter() - t0, "s")
         for problem in sol.problems:
             rec.log_text("warning", f"rig calibration: {problem}")
-        self._use_rig_calibration(sol.calibration)
         self.rig_survey_result = self._rig_survey_report(sol)
         rec.log_text("info", "rig calibration: " + json.dumps(self.rig_survey_result))
         self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self.rig_geometry,
                                    calibration=self.rig_calibration)
 
+    def _solve_rig_survey(self, views: Any) -> Any:
+        from estimation.rig_calibration import solve_rig
+
+        tags = {t: (s.structure_T_tag, s.size_m) for t, s in self.model.tags.items() if s.module == "turntable"}
+        sol = solve_rig(views, self.rig_geometry, self.intrinsics.dist, tags,
+                        turntable_tags=self.model.turntable.tag_ids, rig_name=self.bench.rig.name)
+        self.rig_calibration = sol.calibration
+        return sol
+
     def _rig_model(self):
         return None if self.uncalibrated else self.rig_geometry
-
-    def _use_rig_calibration(self, cal: Any) -> None:
-        self.rig_calibration = cal
 
     def _rig_survey_report(self, sol: Any) -> dict[str, Any]:
         from estimation.rig_calibration import describe, nees_report, truth_error
@@ -340,18 +345,20 @@ class BorgProcedure:
         return {"views": self.views_done, "results": {k: v.to_json() for k, v in self.results.items()},
                 "placed": list(self.bench.sim.world.borg.placed) if self.bench.simulated else [],
                 "homed": self.homed,
-                "rig_calibration": (self.rig_calibration.to_json() if self.rig_survey and self.rig_calibration
-                                    is not None else None),
+                # the survey's inputs, not its result: a resumed run solves them again and gets the
+                # same calibration bit for bit (a rounded copy would move every later estimate)
+                "rig_survey_views": getattr(self, "rig_survey_views", None),
                 "rig_survey": self.rig_survey_result}
 
     def restore(self, state: dict[str, Any], steps_done: list[StepSpec], run: RunContext) -> None:
         """Replay the completed steps' views into a fresh estimator, step by step as they happened,
         so the estimate (and every later verdict) is the one an uninterrupted run would have."""
-        from lab.rig_calibration import rig_calibration_from_json
         from procedures.borg_measure import Measurement
+        from procedures.rig_survey import views_from_json
 
-        if state.get("rig_calibration") is not None:
-            self.rig_calibration = rig_calibration_from_json(state["rig_calibration"], "checkpoint")
+        if state.get("rig_survey_views") is not None:
+            self.rig_survey_views = state["rig_survey_views"]
+            self._solve_rig_survey(views_from_json(self.rig_survey_views))
             self.rig_survey_result = state.get("rig_survey")
         self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self._rig_model(),
                                    calibration=self.rig_calibration)

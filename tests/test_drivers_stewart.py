@@ -98,7 +98,12 @@ def test_lab_stewart_ik_with_a_rig_file(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def bench():
-    with start_sim_bench(fast_sim_rig(), speedup=1000) as b:
+    # an ideal rig: these tests compare the driver's kinematics with the simulator's, not the rig file
+    # with the truth (tests/test_rig_error.py does that)
+    from lab.rig_error import RigError
+    from lab.scenario import Scenario
+
+    with start_sim_bench(fast_sim_rig(), Scenario(rig_error=RigError()), speedup=1000) as b:
         yield b
 
 

@@ -65,7 +65,7 @@ def test_lost_move_command_times_out_and_the_turntable_is_stopped(bench):
             d.turntable.move_to(math.radians(90))
     assert "no reply to 'MOVE 90.000'" in str(err.value) and "motion stopped" in str(err.value)
     assert tx(comms, "turntable")[-1] == b"STOP\n"
-    assert not bench.world.turntable.moving() and bench.world.turntable_angle_rad() == pytest.approx(0.0)
+    assert not bench.world.turntable.moving() and float(bench.world.turntable.position()) == pytest.approx(0.0)
 
 
 def test_one_lost_query_reply_is_recovered_by_a_retry(bench):
