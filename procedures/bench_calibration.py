@@ -162,6 +162,14 @@ def _aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
+def report(path: str) -> int:
+    """Print the table of a (possibly interrupted) study from its calibration.json."""
+    res = json.loads(Path(path).read_text())
+    res["rows"] = _aggregate(res["trials"])
+    print(to_markdown(res))
+    return 0
+
+
 def to_markdown(res: dict[str, Any]) -> str:
     lines = [f"`{res['command']}` ({res['runs']} runs, {res['wall_s']:.0f} s)", "",
              "| mode | rig error | runs | false flags | faults caught | pos. error median / max (mm) | "
@@ -206,20 +214,26 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    trials = []
-    for mode in modes:
+    trials: list[dict[str, Any]] = []
+    command = "lab bench calibration " + " ".join(a for a in sys.argv[3:] if a != "--json")
+
+    def result() -> dict[str, Any]:
+        return {"command": command.strip(), "runs": len(trials), "wall_s": time.perf_counter() - t0, "seeds": seeds,
+                "modules": modules, "scales": scales, "rows": _aggregate(trials), "trials": trials}
+
+    # seed by seed across every configuration, written after each trial: an interrupted study
+    # keeps every finished trial and still covers every configuration
+    for seed in range(seeds):
         for scale in scales:
-            for seed in range(seeds):
+            for mode in modes:
                 trials.append(trial(out, seed, scale, mode, modules, args.speedup))
+                (out / "calibration.json").write_text(json.dumps(result(), indent=1))
                 if not args.json:
                     t = trials[-1]
                     pe = max(t["position_errors_m"], default=float("nan")) * 1e3
-                    print(f"  {mode:<12} x{scale:g} seed {seed}: {t['false_flags']} false flags of {t['good']}, "
+                    print(f"  {mode:<15} x{scale:g} seed {seed}: {t['false_flags']} false flags of {t['good']}, "
                           f"faults {t['faults_caught']}/{t['faults']}, max position error {pe:.2f} mm", flush=True)
-    res = {"command": "lab bench calibration" + (" --quick" if args.quick else ""), "runs": len(trials),
-           "wall_s": time.perf_counter() - t0, "seeds": seeds, "modules": modules, "scales": scales,
-           "rows": _aggregate(trials), "trials": trials}
-    (out / "calibration.json").write_text(json.dumps(res, indent=1))
+    res = result()
     if args.json:
         print(json.dumps({k: v for k, v in res.items() if k != "trials"}, indent=1))
     else:
