@@ -193,3 +193,25 @@ def test_existing_out_not_replaced_without_force(capsys, tmp_path):
     out.write_text("keep me")
     rc, _, err = _run(capsys, "calibrate", "rig", *FAST, "--out", str(out))
     assert rc == 2 and out.read_text() == "keep me" and "--force" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("incidence_deg, kept", [(0, True), (30, True), (40, True), (70, False), (80, False)])
+def test_oblique_sightings_left_out(incidence_deg, kept):
+    """A tag's shortest over longest side is about cos(incidence) (less a few percent of perspective);
+    below 0.65 it is dropped."""
+    import cv2
+
+    from estimation.fiducials import tag_object_points
+    from estimation.rig_calibration import CalibrationView, TagSighting, drop_oblique, side_ratio
+    from estimation.rig_model import ViewMotion
+
+    K = np.array([[914.0, 0, 639.5], [0, 914.0, 359.5], [0, 0, 1]])
+    dist = np.array([-0.05, 0.01, 0, 0, 0])
+    # a 10 cm tag 1.8 m straight ahead of the camera, turned about its vertical axis
+    camera_T_tag = Pose3(Rot3.Ry(math.radians(180 - incidence_deg)), np.array([0.0, 0.0, 1.8]))
+    pts = np.array([camera_T_tag.transformFrom(p) for p in tag_object_points(0.1)])
+    px, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, dist)
+    corners = px.reshape(4, 2)
+    assert side_ratio(corners, K, dist) == pytest.approx(math.cos(math.radians(incidence_deg)), abs=0.04)
+    views, dropped = drop_oblique([CalibrationView(ViewMotion(0.0, (0.0,) * 6), (TagSighting(36, corners),))], K, dist)
+    assert dropped == (0 if kept else 1) and len(views[0].sightings) == (1 if kept else 0)
