@@ -171,7 +171,7 @@ class RigCalibrationProcedure:
         # the devices are where the previous step's last view left them (not after a resume: homed anew)
         previous = self.survey_plan.views[indices[0] - 1] if indices[0] > 0 and self.views else None
         views = capture(self.bench, run, sub, detector, seed=[self.bench.scenario.seed, _STREAM_CAMERA, spec.index],
-                        log_image=log_image, on_view=on_view, previous=previous)
+                        log_image=log_image, on_view=on_view, previous=previous, overlap=True)
         del self.views[indices[0]:]       # a re-run step replaces what it took before
         self.views.extend(views)
         n = sum(len(v.sightings) for v in views)

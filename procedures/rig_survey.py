@@ -15,6 +15,7 @@ and +-30 deg, all within 50 deg of incidence (an oblique tag's corners are biase
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -77,35 +78,52 @@ def plan_rig_survey(reachable: Callable[[Sequence[float]], bool], turntable_limi
 def capture(bench: Any, run: Any, plan: RigSurveyPlan, detector: Any, *, seed: Sequence[int] = (),
             log_image: Callable[[Any, float], None] | None = None,
             on_view: Callable[[int, ViewMotion, list[Any]], None] | None = None,
-            previous: ViewMotion | None = None) -> list[CalibrationView]:
+            previous: ViewMotion | None = None, overlap: bool = False) -> list[CalibrationView]:
     """Move to each planned view, grab, detect; returns what the solver needs.  In simulation the
     camera's noise (and the devices' repeatability) is reseeded per view from `seed` + the view
     index, so a re-run survey sees the same images.  `previous`: the view this survey continues
-    from (the devices are there), or None to move to the first view whatever."""
+    from (the devices are there), or None to move to the first view whatever.  `overlap`: detect
+    and call `log_image` / `on_view` in one worker thread while the devices move on to the next
+    view (in view order; the callbacks must be thread-safe, as the run recorder is): 1-3 s of a
+    96-view survey on a busy 2-core machine."""
     devices = bench.devices
     tt, st, cam = devices.turntable, devices.stewart, devices.camera
     bench.moved.update({tt.name, st.name})
-    out: list[CalibrationView] = []
-    last = previous
-    for k, view in enumerate(plan.views):
-        # a device already where the view wants it is not commanded again: a move of zero still
-        # costs its command, settling and polls (about 4 s of a 96-view survey at speed-up 10)
-        if last is None or view.turntable_rad != last.turntable_rad:
-            with run.move(f"rig survey: turntable {math.degrees(view.turntable_rad):+.0f} deg") as progress:
-                tt.move_to(view.turntable_rad, progress)
-        if last is None or tuple(view.stewart_pose) != tuple(last.stewart_pose):
-            with run.move("rig survey: Stewart platform") as progress:
-                st.move_to(view.stewart_pose, progress)
-        last = view
-        if bench.simulated:
-            bench.sim.world.reseed_camera([*seed, k])
-        frame = cam.grab()
+
+    def process(k: int, view: ViewMotion, frame: Any) -> CalibrationView:
         if log_image is not None:
             log_image(frame, frame.t_s)
         detections = detector.detect(frame.image)
-        out.append(CalibrationView(view, tuple(TagSighting(d.tag_id, np.asarray(d.corners_px)) for d in detections)))
         if on_view is not None:
             on_view(k, view, detections)
+        return CalibrationView(view, tuple(TagSighting(d.tag_id, np.asarray(d.corners_px)) for d in detections))
+
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rig-survey") if overlap else None
+    pending: list[Future[CalibrationView]] = []
+    out: list[CalibrationView] = []
+    last = previous
+    try:
+        for k, view in enumerate(plan.views):
+            # a device already where the view wants it is not commanded again: a move of zero still
+            # costs its command, settling and polls (about 4 s of a 96-view survey at speed-up 10)
+            if last is None or view.turntable_rad != last.turntable_rad:
+                with run.move(f"rig survey: turntable {math.degrees(view.turntable_rad):+.0f} deg") as progress:
+                    tt.move_to(view.turntable_rad, progress)
+            if last is None or tuple(view.stewart_pose) != tuple(last.stewart_pose):
+                with run.move("rig survey: Stewart platform") as progress:
+                    st.move_to(view.stewart_pose, progress)
+            last = view
+            if bench.simulated:
+                bench.sim.world.reseed_camera([*seed, k])
+            frame = cam.grab()
+            if pool is not None:
+                pending.append(pool.submit(process, k, view, frame))
+            else:
+                out.append(process(k, view, frame))
+        out.extend(f.result() for f in pending)      # a worker's exception is raised here
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     return out
 
 
