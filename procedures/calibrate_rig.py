@@ -4,11 +4,12 @@ principal point, the turntable tags as glued) and write the rig calibration file
 `[calibration] file` key references (docs/calibration.md).
 
 A procedure run through the step runner like `lab run borg`: one step homes the devices and
-surveys at the first turntable angle, one step per further turntable angle, a last step solves.
-Every exit path stops the devices that moved and closes the MCAP run with its stop record.  The
-run records the camera intrinsics, every image, every view's commanded motion and the nominal
-camera pose it implies, every view's detections, and the result (the calibration with its
-uncertainties, the conditioning problems, in simulation the errors against the truth).
+surveys at the first platform pose (the turntable sweeping every angle), one step per further
+platform pose, a last step solves.  Every exit path stops the devices that moved and closes the
+MCAP run with its stop record.  The run records the camera intrinsics, every image, every view's
+commanded motion and the nominal camera pose it implies, every view's detections, and the result
+(the calibration with its uncertainties, the conditioning problems, in simulation the errors
+against the truth).
 
 The survey sees only the turntable's rim tags: before assembly nothing else on the bench is at a
 known place, and a module's tags (if any were placed) are not used because they are not where the
@@ -79,17 +80,20 @@ class RigCalibrationProcedure:
         step = rig_survey.ANGLE_STEP_RAD if angle_step_rad is None else float(angle_step_rad)
         self.survey_plan = plan if plan is not None else rig_survey.plan_rig_survey(
             lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable, (rig.turntable.min_rad, rig.turntable.max_rad),
-            poses=rig_survey.SURVEY_POSES, angle_step_rad=step)
+            poses=rig_survey.SURVEY_POSES, angle_step_rad=step, order="poses")
         if not self.survey_plan.views:
             raise UserError(f"rig {rig.source}: no survey pose is inside the Stewart workspace at any turntable angle "
                             f"within [turntable] min_deg..max_deg")
         self.geometry = RigGeometry.from_rig(rig, self.model.world_T_structure(0.0), self.intrinsics.K)
         self.turntable_tags = tuple(self.model.turntable.tag_ids)
         self.tags = {t: (self.model.tags[t].structure_T_tag, self.model.tags[t].size_m) for t in self.turntable_tags}
-        # groups of consecutive views at one turntable angle: one step each
+        # one step per run of views at one platform pose (or one turntable angle, whichever the plan
+        # holds still)
+        def key(v: Any) -> Any:
+            return tuple(v.stewart_pose) if self.survey_plan.order == "poses" else v.turntable_rad
         self.groups: list[list[int]] = []
         for k, v in enumerate(self.survey_plan.views):
-            if self.groups and self.survey_plan.views[self.groups[-1][-1]].turntable_rad == v.turntable_rad:
+            if self.groups and key(self.survey_plan.views[self.groups[-1][-1]]) == key(v):
                 self.groups[-1].append(k)
             else:
                 self.groups.append([k])
@@ -100,8 +104,14 @@ class RigCalibrationProcedure:
 
     # ---- plan and dry run --------------------------------------------------------------------
     def plan(self) -> list[StepSpec]:
-        steps = [StepSpec(i, f"survey at turntable {math.degrees(self.survey_plan.views[g[0]].turntable_rad):+.0f} deg",
-                          {"views": len(g)}) for i, g in enumerate(self.groups)]
+        def name(i: int, g: list[int]) -> str:
+            v = self.survey_plan.views[g[0]]
+            if self.survey_plan.order == "poses":
+                x = v.stewart_pose
+                return (f"survey at platform pose {i + 1}/{len(self.groups)} (xyz {x[0]:+.2f} {x[1]:+.2f} {x[2]:+.2f} m, "
+                        f"rpy {math.degrees(x[3]):+.0f} {math.degrees(x[4]):+.0f} {math.degrees(x[5]):+.0f} deg)")
+            return f"survey at turntable {math.degrees(v.turntable_rad):+.0f} deg"
+        steps = [StepSpec(i, name(i, g), {"views": len(g)}) for i, g in enumerate(self.groups)]
         steps.append(StepSpec(len(steps), "solve", {"views": len(self.survey_plan.views)}))
         return steps
 

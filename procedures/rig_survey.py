@@ -55,24 +55,40 @@ ANGLE_STEP_RAD = _D(30)
 class RigSurveyPlan:
     views: tuple[ViewMotion, ...]
     skipped: tuple[str, ...] = ()      # candidate poses the workspace refused, said once
+    order: str = "angles"              # "angles": every pose at one angle, then the next angle; "poses": the converse
+
+
+ORDERS = ("angles", "poses")
 
 
 def plan_rig_survey(reachable: Callable[[Sequence[float]], bool], turntable_limits_rad: tuple[float, float],
-                    poses: Sequence[Sequence[float]] = SURVEY_POSES, angle_step_rad: float = ANGLE_STEP_RAD
-                    ) -> RigSurveyPlan:
+                    poses: Sequence[Sequence[float]] = SURVEY_POSES, angle_step_rad: float = ANGLE_STEP_RAD,
+                    order: str = "angles") -> RigSurveyPlan:
     """Every reachable survey pose at every turntable angle a full turn in `angle_step_rad` steps,
-    within the limits; poses alternate direction from one angle to the next (shorter moves)."""
+    within the limits.  `order="angles"`: all poses at one angle, then the next angle, the poses
+    alternating direction (shorter moves); `order="poses"`: the turntable sweeps every angle at
+    one pose, alternating direction, then the platform moves on.  The views are the same; the
+    time is not: on the sim rig a 30 deg turn takes 0.3 s and the platform's average survey move
+    0.45 s, so sweeping the turntable (88 turns, 7 platform moves) takes ~30 s where the other
+    order (11 turns, 84 platform moves) takes ~41 s."""
+    if order not in ORDERS:
+        raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
     lo, hi = turntable_limits_rad
     start = max(lo, -math.pi / 2)
-    angles = [a for a in np.arange(start, start + 2 * math.pi - 1e-9, angle_step_rad) if lo <= a <= hi]
+    angles = [float(a) for a in np.arange(start, start + 2 * math.pi - 1e-9, angle_step_rad) if lo <= a <= hi]
     ok = [tuple(float(v) for v in p) for p in poses if reachable(p)]
     skipped = tuple(f"platform pose {np.round(p, 3).tolist()} is outside the workspace" for p in poses
                     if tuple(float(v) for v in p) not in ok)
     views = []
-    for i, a in enumerate(angles):
-        for p in (ok if i % 2 == 0 else ok[::-1]):
-            views.append(ViewMotion(float(a), p))
-    return RigSurveyPlan(tuple(views), skipped)
+    if order == "angles":
+        for i, a in enumerate(angles):
+            for p in (ok if i % 2 == 0 else ok[::-1]):
+                views.append(ViewMotion(a, p))
+    else:
+        for i, p in enumerate(ok):
+            for a in (angles if i % 2 == 0 else angles[::-1]):
+                views.append(ViewMotion(a, p))
+    return RigSurveyPlan(tuple(views), skipped, order)
 
 
 def capture(bench: Any, run: Any, plan: RigSurveyPlan, detector: Any, *, seed: Sequence[int] = (),
