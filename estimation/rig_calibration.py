@@ -14,7 +14,7 @@ that has no calibration file).
    could not pin down to its limit is named, with what the survey lacked.
 
 Two things keep the covariances honest (measured on rendered surveys, docs/calibration.md):
-- tags seen too obliquely are left out: their corners are biased (0.09 px rms error up to 50 deg
+- tags seen too obliquely are left out: their corners are biased (0.09-0.12 px rms error up to 50 deg
   incidence, 0.15 at 50-60, 0.37 at 60-70, 1.3 px at 70-80), and a biased corner is not noise a
   sigma can cover.  The image says how oblique a tag is: the ratio of its shortest to its longest
   side (undistorted) is about cos(incidence); below `min_side_ratio` (0.65, about 50-60 deg of
