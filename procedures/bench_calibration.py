@@ -67,6 +67,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speedup", type=float, default=100.0, help="simulated device speed-up (default 100)")
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
     p.add_argument("--out", default="bench_out/calibration", help="directory for the runs (default bench_out/calibration)")
+    p.add_argument("--report", metavar="JSON", help="print the tables of an earlier (or interrupted) study's "
+                                                   "calibration.json instead of running one")
 
 
 def _scenario(seed: int, scale: float) -> str:
@@ -150,10 +152,12 @@ def _aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
         }
         cal = [t["calibration_truth_error"] for t in ts if t.get("calibration_truth_error")]
         if cal:
-            for key, unit in (("camera_mount_m", 1e3), ("stewart_base_m", 1e3), ("turntable_axis_m", 1e3)):
-                row[key.replace("_m", "_mm") + "_max"] = max(c[key] for c in cal) * unit
-            for key in ("camera_mount_rad", "stewart_base_rad"):
-                row[key.replace("_rad", "_deg") + "_max"] = math.degrees(max(c[key] for c in cal))
+            for name in ("camera_mount", "stewart_base", "turntable_axis"):
+                vals = [c[f"{name}_m"] * 1e3 for c in cal]
+                row[f"{name}_mm_max"], row[f"{name}_mm_median"] = max(vals), float(np.median(vals))
+            for name in ("camera_mount", "stewart_base"):
+                vals = [math.degrees(c[f"{name}_rad"]) for c in cal]
+                row[f"{name}_deg_max"], row[f"{name}_deg_median"] = max(vals), float(np.median(vals))
             row["focal_percent_max"] = max(c.get("focal_rel", 0.0) for c in cal) * 100
             nees = [t["calibration_nees"] for t in ts if t.get("calibration_nees")]
             for key in ("platform_T_camera", "world_T_base"):
@@ -186,11 +190,14 @@ def to_markdown(res: dict[str, Any]) -> str:
     cal_rows = [r for r in res["rows"] if "camera_mount_mm_max" in r]
     if cal_rows:
         lines += ["", "Rig calibration survey against the simulated truth (largest over the runs):", "",
-                  "| rig error | mount (mm / deg) | base (mm / deg) | axis (mm) | focal (%) | NEES mount / base (dim 6) |",
-                  "|---|---|---|---|---|---|"]
+                  "| rig error | mount mm median / max | mount deg median / max | base mm median / max | "
+                  "base deg median / max | axis mm max | focal % max | mean NEES mount / base (dim 6) |",
+                  "|---|---|---|---|---|---|---|---|"]
         for r in cal_rows:
-            lines.append(f"| {r['rig_error_scale']:g}x | {r['camera_mount_mm_max']:.2f} / {r['camera_mount_deg_max']:.3f} | "
-                         f"{r['stewart_base_mm_max']:.2f} / {r['stewart_base_deg_max']:.3f} | "
+            lines.append(f"| {r['rig_error_scale']:g}x | {r['camera_mount_mm_median']:.2f} / {r['camera_mount_mm_max']:.2f} | "
+                         f"{r['camera_mount_deg_median']:.3f} / {r['camera_mount_deg_max']:.3f} | "
+                         f"{r['stewart_base_mm_median']:.2f} / {r['stewart_base_mm_max']:.2f} | "
+                         f"{r['stewart_base_deg_median']:.3f} / {r['stewart_base_deg_max']:.3f} | "
                          f"{r['turntable_axis_mm_max']:.2f} | {r['focal_percent_max']:.3f} | "
                          f"{r['nees_platform_T_camera_mean']:.1f} / {r['nees_world_T_base_mean']:.1f} |")
     return "\n".join(lines)
@@ -199,6 +206,11 @@ def to_markdown(res: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     from lab.errors import UserError
 
+    if args.report:
+        try:
+            return report(args.report)
+        except (OSError, ValueError, KeyError) as exc:
+            raise UserError(f"--report {args.report}: not a study's calibration.json ({exc})") from None
     seeds = args.seeds if args.seeds is not None else (2 if args.quick else 10)
     modules = args.modules if args.modules is not None else (9 if args.quick else 27)
     try:

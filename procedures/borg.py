@@ -134,8 +134,9 @@ class BorgProcedure:
         from procedures.rig_survey import plan_rig_survey
 
         rig = self.bench.rig
+        # a turntable sweep per platform pose: the shortest survey for the same views
         return plan_rig_survey(lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable,
-                               (rig.turntable.min_rad, rig.turntable.max_rad))
+                               (rig.turntable.min_rad, rig.turntable.max_rad), order="poses")
 
     def dry_run_problems(self, steps: list[StepSpec]) -> list[str]:
         tt, st = self.bench.devices.turntable, self.bench.devices.stewart
@@ -223,7 +224,7 @@ class BorgProcedure:
         views = capture(self.bench, run, plan, self.measure.detector,
                         seed=[self.bench.scenario.seed, _STREAM_CAMERA, spec.index],
                         log_image=lambda frame, t: rec.log_image(topics.CAMERA_IMAGE, frame.image, t, "camera",
-                                                                 format=IMAGE_FORMAT))
+                                                                 format=IMAGE_FORMAT), overlap=True)
         from procedures.rig_survey import views_to_json
 
         self.rig_survey_views = views_to_json(views)

@@ -99,3 +99,20 @@ def test_corner_factor_jacobians_match_numerical_derivatives_and_reproject_exact
         d = 5 if key == INTRINSICS else 6
         num = _numerical(f, v, key, d, eps=1e-6 if d == 6 else 1e-4)
         assert J * 0.1 == pytest.approx(num, rel=1e-3, abs=1e-2)     # unwhitened: sigma 0.1 px
+
+
+def test_corner_factor_with_fixed_intrinsics_matches_numerical_derivatives():
+    v = gtsam.Values()
+    cam = Pose3(Rot3.RzRyRx(-np.pi / 2 - 0.05, 0.1, -np.pi / 2 + 0.15), np.array([-2.2, -0.1, 0.8]))
+    tag = Pose3(Rot3.RzRyRx(np.pi / 2 + 0.1, -0.05, -np.pi / 2 + 0.4), np.array([0.1, 0.3, 0.5]))
+    v.insert(C, cam)
+    v.insert(T, tag)
+    local = tag_object_points(0.1)
+    K2 = np.array([[920.0, 0.3, 641.0], [0, 918.0, 358.0], [0, 0, 1]])
+    pinhole = gtsam.PinholeCameraCal3_S2(cam, cal3_s2(K2))
+    corners = np.array([pinhole.project(tag.transformFrom(p)) for p in local])
+    f = corner_factor(C, T, corners - 0.3, local, 0.1, robust_k=None, fixed=cal3_s2(K2))
+    assert list(f.keys()) == [C, T]
+    assert f.unwhitenedError(v) == pytest.approx(np.full(8, 0.3), abs=1e-9)
+    for key, J in zip(f.keys(), _analytic(f, v)):
+        assert J * 0.1 == pytest.approx(_numerical(f, v, key, 6), rel=1e-3, abs=1e-2)

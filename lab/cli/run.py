@@ -170,6 +170,11 @@ def _resume(args: argparse.Namespace) -> int:
 
     run_dir = Path(args.run_dir)
     info, ckpt = runner.load_resume(run_dir)
+    if info.get("procedure") not in ("borg", "truss"):
+        from lab.errors import UserError
+
+        raise UserError(f"{run_dir}: a {info.get('procedure')!r} run cannot be resumed; run it again "
+                        f"(`lab calibrate rig` surveys in under a minute)")
     params = dict(info["params"])
     if args.auto:
         params["auto"] = True
