@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from drivers.errors import LengthControlError, OutOfRange, ProtocolError
-from drivers.motion import MotionPlan, Poll, Progress, send_motion, stop_quietly, wait_until_idle
+from drivers.motion import MotionPlan, Poll, Progress, sent_motion, stop_quietly, wait_until_idle
 from drivers.transport import HttpTransport, LineTransport, Transport
 from drivers.wire import parse_fields, parse_float
 from lab.comms import CommsSink, null_sink
@@ -112,12 +112,16 @@ class _HttpWire:
     def __init__(self, name: str, link: HttpTransport) -> None:
         self.name, self.link = name, link
 
-    def _get(self, path: str, params: dict[str, Any] | None = None, *, idempotent: bool, keys: tuple[str, ...]) -> dict:
-        reply = self.link.get_json(path, params, idempotent=idempotent)
-        missing = [k for k in keys if k not in reply]
-        if missing:
-            raise ProtocolError(self.name, f"reply to GET {path} lacks {', '.join(missing)}: {reply!r}")
-        return reply
+    def _get(self, path: str, params: dict[str, Any] | None = None, *, idempotent: bool, keys: tuple[str, ...],
+             check: Any = None) -> dict:
+        def valid(reply: dict) -> None:   # runs inside the retry loop: a garbled query reply is retried
+            missing = [k for k in keys if k not in reply]
+            if missing:
+                raise ProtocolError(self.name, f"reply to GET {path} lacks {', '.join(missing)}: {reply!r}")
+            if check is not None:
+                check(reply)
+
+        return self.link.get_json(path, params, idempotent=idempotent, check=valid)
 
     def identify(self) -> str:
         r = self._get("/id", idempotent=True, keys=("device", "model", "firmware"))
@@ -134,10 +138,12 @@ class _HttpWire:
             raise ProtocolError(self.name, f"reply to GET /limits has a non-number: {r!r}") from None
 
     def volts(self) -> float:
-        v = self._get("/volts", idempotent=True, keys=("volts",))["volts"]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise ProtocolError(self.name, f"reply to GET /volts: {v!r} is not a number")
-        return float(v)
+        def number(r: dict) -> None:
+            v = r["volts"]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ProtocolError(self.name, f"reply to GET /volts: {v!r} is not a number")
+
+        return float(self._get("/volts", idempotent=True, keys=("volts",), check=number)["volts"])
 
     def step(self, n: int) -> None:
         r = self._get("/step", {"steps": n}, idempotent=False, keys=("accepted",))
@@ -145,10 +151,11 @@ class _HttpWire:
             raise ProtocolError(self.name, f"GET /step?steps={n} was not accepted: {r!r}")
 
     def moving(self) -> bool:
-        m = self._get("/moving", idempotent=True, keys=("moving",))["moving"]
-        if not isinstance(m, bool):
-            raise ProtocolError(self.name, f"reply to GET /moving: {m!r} is not true/false")
-        return m
+        def boolean(r: dict) -> None:
+            if not isinstance(r["moving"], bool):
+                raise ProtocolError(self.name, f"reply to GET /moving: {r['moving']!r} is not true/false")
+
+        return bool(self._get("/moving", idempotent=True, keys=("moving",), check=boolean)["moving"])
 
     def stop(self) -> None:
         self._get("/stop", idempotent=True, keys=("stopped",))
@@ -170,6 +177,7 @@ class Ipjr:
         self.link = wire.link
         self._hw: IpjrHardware | None = None
         self.attach_offset_m: float | None = None
+        self.moved = False      # a motion command has been sent by this driver (what a clean-up may stop)
 
     @classmethod
     def open(cls, config: IpjrConfig, sink: CommsSink = null_sink) -> Ipjr:
@@ -243,10 +251,12 @@ class Ipjr:
     def step(self, n: int, progress: Progress | None = None, *, extension_m: float | None = None) -> None:
         """Move n steps and wait until the actuator has stopped.  Refused before sending if |n| is
         beyond the device's max_steps or the move would run past either end of the stroke."""
-        if isinstance(n, bool) or int(n) != n or n == 0:
+        if isinstance(n, bool) or not isinstance(n, (int, float)) or not math.isfinite(n) or int(n) != n or n == 0:
             raise ValueError(f"{self.name}: steps must be a non-zero integer, got {n!r}")
         n = int(n)
         ext = self.measure_extension() if extension_m is None else extension_m
+        if not math.isfinite(ext):
+            raise ValueError(f"{self.name}: extension {ext!r} is not a finite number of m")
         c = self.config
         predicted = ext + n * c.step_m
         if not -0.5 * c.step_m <= predicted <= c.stroke_m + 0.5 * c.step_m:
@@ -255,8 +265,8 @@ class Ipjr:
         hw = self.hardware()
         if abs(n) > hw.max_steps:
             raise OutOfRange(self.name, "step count", n, (-hw.max_steps, hw.max_steps), "steps", "device max_steps")
-        plan = MotionPlan.of(f"{n} steps", abs(n) * hw.step_mm, hw.speed_mm_s, hw.settle_s, c.link.margin_s)
-        send_motion(self.name, lambda: self.wire.step(n), self.wire.stop)
+        plan = MotionPlan.of(f"{n} steps", abs(n) * hw.step_mm, hw.speed_mm_s, hw.settle_s, c.link.margin_s, self.name)
+        sent_motion(self, lambda: self.wire.step(n), self.wire.stop)
 
         def poll() -> Poll:
             return Poll(self.wire.moving(), 0.5, "actuator still moving")

@@ -186,6 +186,6 @@ def _ik(args: argparse.Namespace) -> int:
         print(json.dumps(out, indent=2))
     else:
         print("pose (m, rad): " + " ".join(f"{v:.6g}" for v in pose))
-        print("legs (m):      " + " ".join(f"{v:.6f}" for v in out["legs_m"]))
+        print("legs (m):      " + " ".join("-" if v is None else f"{v:.6f}" for v in out["legs_m"]))
         print("reachable" if out["reachable"] else f"UNREACHABLE: {out['reason']}")
     return 0  # computed; reachability is in the output
