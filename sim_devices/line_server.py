@@ -23,6 +23,7 @@ from typing import Callable
 from sim_devices.faults import FaultInjector
 
 MAX_LINE = 128
+MAX_CLIENTS = 8          # TCP clients at once (a serial port has one); more are closed at once
 
 E_UNKNOWN, E_SYNTAX, E_TOO_LONG, E_RANGE, E_NOT_HOMED, E_BUSY, E_FAULT, E_INTERNAL = 10, 11, 12, 20, 30, 31, 40, 50
 
@@ -235,6 +236,9 @@ class LineServer:
                 continue
             except OSError:
                 return
+            if len(self._clients) >= MAX_CLIENTS:
+                _close(conn)
+                continue
             conn.settimeout(0.05)
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self._clients.add(conn)

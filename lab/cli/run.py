@@ -115,6 +115,7 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
 
     dry = bool(params.get("dry_run"))
     run_dir = resume_dir or _out_dir(argparse.Namespace(**params), procedure)
+    created = not run_dir.exists()
     lock = None
     if not dry:
         lock = rs.lock_run_dir(run_dir) if resume_dir is not None else rs.prepare_out_dir(run_dir, bool(params.get("replace")))
@@ -169,6 +170,17 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
     finally:
         if lock is not None:
             lock.release()
+            _remove_if_unused(run_dir, created)
+
+
+def _remove_if_unused(run_dir: Path, created: bool) -> None:
+    """A run refused before it started leaves no directory behind it created."""
+    try:
+        if created and {p.name for p in run_dir.iterdir()} <= {".lock"}:
+            (run_dir / ".lock").unlink(missing_ok=True)
+            run_dir.rmdir()
+    except OSError:
+        pass
 
 
 def _print_outcome(procedure: str, outcome) -> None:
