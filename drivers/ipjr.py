@@ -24,8 +24,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from drivers.errors import LengthControlError, OutOfRange, ProtocolError
-from drivers.motion import MotionPlan, Poll, Progress, sent_motion, stop_quietly, wait_until_idle
+from drivers.errors import Disconnected, LengthControlError, OutOfRange, ProtocolError
+from drivers.motion import MotionPlan, Poll, Progress, link_drops, sent_motion, stop_quietly, wait_until_idle
 from drivers.transport import HttpTransport, LineTransport, Transport
 from drivers.wire import parse_fields, parse_float
 from lab.comms import CommsSink, null_sink
@@ -284,6 +284,8 @@ class Ipjr:
         measured = self.measure_length()
         strikes = 0
         moves: list[float] = []
+        drops0 = drops = link_drops(self.link)
+        cut_short = 0          # consecutive moves during which the link dropped
         for attempt in range(1, c.max_tries + 1):
             err = length_m - measured
             if abs(err) < c.tolerance_m:
@@ -299,6 +301,13 @@ class Ipjr:
                 progress(min(1.0, attempt / c.max_tries))
             new = self.measure_length()
             history.append((n, new))
+            now = link_drops(self.link)
+            cut_short = cut_short + 1 if now > drops else 0
+            drops = now
+            if cut_short >= 2:   # the link keeps dropping mid-move (the actuator stops each time)
+                stopped = stop_quietly(self.name, self.wire.stop)
+                raise Disconnected(self.name, f"link to {self.link.url} lost during {cut_short} moves in a row; "
+                                              f"length control gave up at error {self._mm(length_m, history)}; {stopped}")
             moves.append(abs(new - measured) / (abs(n) * c.step_m))   # fraction of the commanded move
             strikes = strikes + 1 if abs(length_m - new) >= abs(err) else 0
             if strikes >= 2:   # twice in a row no closer: stop before it gets worse
@@ -313,8 +322,10 @@ class Ipjr:
         err = length_m - measured
         if abs(err) < c.tolerance_m:
             return LengthResult(measured, err, c.max_tries, history)
+        lost = link_drops(self.link) - drops0
         raise self._fail(f"length {length_m:.5f} m not reached within {c.tolerance_m * 1000:g} mm after "
-                         f"{c.max_tries} tries; error {self._mm(length_m, history)}", history)
+                         f"{c.max_tries} tries; error {self._mm(length_m, history)}"
+                         + (f"; the link to {self.link.url} was lost {lost} times meanwhile" if lost else ""), history)
 
     @staticmethod
     def _mm(target: float, history: list[tuple[int, float]]) -> str:

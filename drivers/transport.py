@@ -344,13 +344,20 @@ class HttpTransport(Transport):
         self.base_path = parts.path.rstrip("/")
 
     def get(self, path: str, params: dict[str, Any] | None = None, *, idempotent: bool,
-            timeout_s: float | None = None) -> HttpReply:
+            timeout_s: float | None = None, check: Callable[[HttpReply], None] | None = None) -> HttpReply:
         """One GET; a 5xx is raised as DeviceFault (code = HTTP status) and retried if idempotent.
-        Other statuses are returned for the caller to interpret."""
+        Other statuses are returned for the caller to interpret.  `check` (raising ProtocolError)
+        runs inside the retry loop."""
         target = self._target(path, params)
+
+        def once() -> HttpReply:
+            reply = self._exchange(target, timeout_s or self.reply_timeout_s)
+            if check is not None:
+                check(reply)
+            return reply
+
         with self.lock:
-            return self._with_retries(f"GET {target}", idempotent,
-                                      lambda: self._exchange(target, timeout_s or self.reply_timeout_s))
+            return self._with_retries(f"GET {target}", idempotent, once)
 
     def _target(self, path: str, params: dict[str, Any] | None) -> str:
         target = (self.base_path + path) if path.startswith("/") else f"{self.base_path}/{path}"

@@ -13,6 +13,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "fiducials": ("estimation.bench_fiducials", "AprilTag detection time and pose error on rendered images"),
     "mle": ("estimation.bench_mle", "IPJR sequencing, MLE vs EKF vs open loop"),
     "run": ("procedures.bench_run", "end-to-end simulated procedure runs (BORG, tetrahelix)"),
+    "faults": ("procedures.bench_faults", "the fault campaign: device faults, kills, signals, bad input, abuse"),
 }
 
 
