@@ -130,12 +130,16 @@ class _HttpWire:
         return f"IPJR {r['model']} {r['firmware']}"
 
     def limits(self) -> IpjrHardware:
-        r = self._get("/limits", idempotent=True, keys=("stroke_mm", "step_mm", "speed_mm_s", "settle_s", "max_steps"))
-        try:
-            return IpjrHardware(float(r["stroke_mm"]), float(r["step_mm"]), float(r["speed_mm_s"]),
-                                float(r["settle_s"]), int(r["max_steps"]))
-        except (TypeError, ValueError):
-            raise ProtocolError(self.name, f"reply to GET /limits has a non-number: {r!r}") from None
+        def numbers(r: dict) -> None:
+            for k in ("stroke_mm", "step_mm", "speed_mm_s", "settle_s", "max_steps"):
+                v = r[k]
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                    raise ProtocolError(self.name, f"reply to GET /limits: {k} {v!r} is not a number")
+
+        r = self._get("/limits", idempotent=True, keys=("stroke_mm", "step_mm", "speed_mm_s", "settle_s", "max_steps"),
+                      check=numbers)
+        return IpjrHardware(float(r["stroke_mm"]), float(r["step_mm"]), float(r["speed_mm_s"]),
+                            float(r["settle_s"]), int(r["max_steps"]))
 
     def volts(self) -> float:
         def number(r: dict) -> None:

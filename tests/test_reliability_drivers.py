@@ -161,3 +161,40 @@ def test_stewart_legs_are_checked_again_just_before_the_wire():
         st = _stewart(dev.url)
         with pytest.raises(OutOfRange, match="leg 1 length"):
             st._move_legs(np.full(6, np.nan), "to nowhere", None)
+
+
+def test_a_serial_ipjr_whose_link_keeps_dropping_says_so():
+    """Found by the campaign: each move cut short by a dropped link, the controller ran out of
+    tries and blamed the length; the link loss must be named."""
+    from drivers.errors import Disconnected
+    from sim_devices.bench import start_sim_bench
+
+    with start_sim_bench(fast_sim_rig(0.1, 0.3), speedup=200) as bench:
+        bench.inject("ipjr3", "disconnect", after_commands=0, count=0)
+        with drivers.connect(bench.rig, only=["ipjr3"]) as devs:
+            bench.world.ipjrs["ipjr3"].attach(0.8)
+            ip = devs.ipjrs["ipjr3"]
+            ip.attach(0.8)
+            with pytest.raises(Disconnected, match="link to socket://.* lost during 2 moves in a row"):
+                ip.set_length(0.8123)
+        assert not bench.world.ipjrs["ipjr3"].moving()
+
+
+def test_clean_up_stops_only_devices_the_driver_moved():
+    from procedures.setup import Bench
+
+    class Dev:
+        def __init__(self, moved):
+            self.moved, self.stops = moved, 0
+
+        def stop(self):
+            self.stops += 1
+
+    class Devs(dict):
+        pass
+
+    b = Bench(rig=None, scenario=None)
+    b.devices = Devs(turntable=Dev(False), stewart=Dev(True))
+    b.moved = {"turntable", "stewart"}
+    assert b.stop_moved() == ["stewart stopped"]
+    assert b.devices["turntable"].stops == 0
