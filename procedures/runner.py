@@ -237,8 +237,6 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
         except KeyboardInterrupt:
             result = "aborted"
             reason = f"interrupted by the operator during {ctx.step.name if ctx.step else 'start-up'}"
-            if shield.signals:
-                reason = f"{reason} ({shield.describe()})"
             tb = traceback.format_exc()
         except StopRun as exc:
             result, reason = "aborted", str(exc)
@@ -250,6 +248,8 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
         try:
             bar.close()
             stopped = _stop_all(procedure)
+            if result == "aborted" and shield.signals:   # every signal, those during the clean-up too
+                reason = f"{reason} ({shield.describe()})"
             if stopped:
                 reason = f"{reason} (stopped: {', '.join(stopped)})" if reason else reason
             if result == "completed" and recorder is not None:

@@ -198,3 +198,18 @@ def test_clean_up_stops_only_devices_the_driver_moved():
     b.moved = {"turntable", "stewart"}
     assert b.stop_moved() == ["stewart stopped"]
     assert b.devices["turntable"].stops == 0
+
+
+def test_a_link_lost_while_homing_is_named_as_such():
+    """The issue: a turntable `disconnect` during HOME reported 'homing ended without finding the
+    index' instead of the lost link."""
+    from drivers.errors import Disconnected
+    from sim_devices.bench import start_sim_bench
+
+    with start_sim_bench(fast_sim_rig(0.25, 0.2), speedup=20) as bench:
+        with drivers.connect(bench.rig, only=["turntable"]) as devs:
+            devs.turntable.move_to  # noqa: B018 (the driver exists)
+            bench.inject("turntable", "disconnect")       # the first command while homing
+            with pytest.raises(Disconnected, match="link to socket://.* lost during the move .*homing"):
+                devs.turntable.home()
+        assert not bench.world.turntable.moving()

@@ -203,3 +203,65 @@ def test_repeated_interrupts_end_like_one(tmp_path):
         r = _run(["resume", str(out), "--auto"])
         assert r.returncode == 0, r.stdout + r.stderr
         assert _ends(out / "run.mcap") == list(range(6))
+
+
+class _Proc:
+    """A procedure whose step is interrupted by a signal and whose clean-up is interrupted again
+    between the STOPs of its three devices (the issue: a second Ctrl-C during the STOP loop)."""
+
+    name = "fake"
+
+    def __init__(self):
+        self.stopped: list[str] = []
+
+    def plan(self):
+        from procedures.runner import StepSpec
+
+        return [StepSpec(i, f"s{i}") for i in range(3)]
+
+    def dry_run_problems(self, steps):
+        return []
+
+    def execute(self, step, run):
+        if step.index == 1:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)
+
+    def checkpoint(self):
+        return {}
+
+    def restore(self, state, steps_done, run):
+        pass
+
+    def summary(self, result, reason):
+        return {"result": result, "reason": reason}
+
+    def stop_devices(self):
+        out = []
+        for name in ("a", "b", "c"):
+            if name == "b":
+                os.kill(os.getpid(), signal.SIGINT)     # and again, and a SIGTERM, mid-clean-up
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
+            self.stopped.append(name)
+            out.append(f"{name} stopped")
+        return out
+
+    def close(self):
+        pass
+
+
+def test_signals_during_the_clean_up_cannot_skip_a_stop(tmp_path):
+    from lab.recorder import RunRecorder
+    from procedures import runner
+
+    proc = _Proc()
+    outcome = runner.run(proc, tmp_path / "r", info={}, operator_auto=True, show_progress=False,
+                         recorder_factory=lambda p: RunRecorder(p, "fake", {}))
+    assert outcome.exit_code == 3 and outcome.result == "aborted"
+    assert proc.stopped == ["a", "b", "c"]
+    s = json.loads((tmp_path / "r" / "summary.json").read_text())
+    stop = read_summary(tmp_path / "r" / "run.mcap").stop
+    assert s["result"] == stop.result == "aborted" and s["reason"] == stop.reason
+    assert "3 signals" in s["reason"] and "c stopped" in s["reason"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler   # handlers given back
