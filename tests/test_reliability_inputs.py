@@ -82,3 +82,12 @@ def test_speedup_is_bounded(capsys, value):
         lab_main(["run", "truss", "tetrahelix:6", "--speedup", value])
     assert e.value.code == 2
     assert "--speedup" in capsys.readouterr().err
+
+
+def test_the_bounds_admit_every_shipped_scenario_and_the_papers_noise():
+    from lab.scenario import load_scenario, parse_scenario
+
+    for f in (Path(__file__).resolve().parents[1] / "docs" / "scenarios").glob("*.toml"):
+        load_scenario(f)
+    s = parse_scenario({"truss": {"sigma_length_m": 0.1, "sigma_measure_m": 0.01}})   # the IPJR paper's study
+    assert s.truss.sigma_length_m == 0.1
