@@ -84,16 +84,26 @@ class FileLock:
 
     def acquire(self) -> FileLock:
         """Take the lock now or raise `Busy` naming the holder (never waits)."""
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = _read_note(fd)
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = _read_note(fd)
+                os.close(fd)
+                raise Busy(self.what, holder) from None
+            except OSError:
+                os.close(fd)
+                raise
+            # The holder before us may have deleted the file as it let go (release unlinks it):
+            # then we locked an orphan inode, and must lock the file now at the path instead.
+            try:
+                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
             os.close(fd)
-            raise Busy(self.what, holder) from None
-        except OSError:
-            os.close(fd)
-            raise
         note = (json.dumps({"what": self.what, **holder_info()}) + "\n").encode()
         os.ftruncate(fd, 0)
         os.pwrite(fd, note, 0)
@@ -103,7 +113,12 @@ class FileLock:
     def release(self) -> None:
         if self.fd >= 0:
             try:
-                os.ftruncate(self.fd, 0)   # no note: nobody holds it
+                # unlink while still holding it, so lock files do not pile up; a process that
+                # opened the old file meanwhile notices (acquire's inode check) and retries
+                try:
+                    os.unlink(self.path)
+                except OSError:
+                    pass
                 fcntl.flock(self.fd, fcntl.LOCK_UN)
             finally:
                 os.close(self.fd)

@@ -213,3 +213,22 @@ def test_a_link_lost_while_homing_is_named_as_such():
             with pytest.raises(Disconnected, match="link to socket://.* lost during the move .*homing"):
                 devs.turntable.home()
         assert not bench.world.turntable.moving()
+
+
+def test_a_real_serial_port_is_opened_exclusively():
+    """A device path (here a simulator's pseudo-terminal) is opened with an exclusive lock: a
+    second opener is refused instead of talking over the first one's requests."""
+    from drivers.errors import Disconnected
+    from sim_devices.bench import start_sim_bench
+
+    with start_sim_bench(fast_sim_rig(), speedup=200, pty=True) as bench:
+        path = bench.pty_paths["turntable"]
+        first = LineTransport("turntable", path, reply_timeout_s=0.5, retries=0)
+        assert first.request("ID?").startswith("TURNTABLE")
+        second = LineTransport("turntable", path, reply_timeout_s=0.5, retries=0)
+        with pytest.raises(Disconnected, match="cannot open"):
+            second.open()
+        first.close()
+        second.open()                 # free again once the first lets go
+        assert second.request("ID?").startswith("TURNTABLE")
+        second.close()
