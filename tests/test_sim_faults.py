@@ -11,8 +11,7 @@ import pytest
 
 import drivers
 from drivers.camera import Camera
-from drivers.errors import (DeviceFault, DeviceTimeout, Disconnected, LengthControlError, MotionIncomplete,
-                            ProtocolError)
+from drivers.errors import DeviceFault, DeviceTimeout, Disconnected, LengthControlError, ProtocolError
 from drivers.testing import fast_sim_rig
 from lab.comms import MemoryComms
 from lab.errors import UserError
