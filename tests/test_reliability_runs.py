@@ -265,3 +265,15 @@ def test_signals_during_the_clean_up_cannot_skip_a_stop(tmp_path):
     assert s["result"] == stop.result == "aborted" and s["reason"] == stop.reason
     assert "3 signals" in s["reason"] and "c stopped" in s["reason"]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler   # handlers given back
+
+
+def test_a_resume_killed_during_its_copy_leaves_a_half_copy_the_next_resume_drops(interrupted):
+    """What a kill during the (new) copy leaves: the old log already moved to run.part1.mcap, a
+    half-written run.resume.mcap, no run.mcap.  The next resume must complete from the part."""
+    os.replace(interrupted / "run.mcap", interrupted / "run.part1.mcap")
+    data = (interrupted / "run.part1.mcap").read_bytes()
+    (interrupted / "run.resume.mcap").write_bytes(data[: len(data) // 3])
+    r = _run(["resume", str(interrupted), "--auto"])
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert not (interrupted / "run.resume.mcap").exists()
+    assert _ends(interrupted / "run.mcap") == list(range(6))
