@@ -40,7 +40,7 @@ def test_calibration_round_trip_and_errors(tmp_path):
 
 
 def test_snapshot_urls_are_recognised():
-    assert is_snapshot_url("http://127.0.0.1:47103/frame.png")
+    assert is_snapshot_url("http://127.0.0.1:27103/frame.png")
     assert not is_snapshot_url("http://cam.local/video.mjpg") and not is_snapshot_url("0")
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from lab.cli import main
 from lab.config import default_rig_path
 
-DEFAULT_PORTS = (47101, 47102, 47103, 47111, 47112, 47113)
+DEFAULT_PORTS = (27101, 27102, 27103, 27111, 27112, 27113)
 
 
 def free_ports(n: int) -> list[int]:
