@@ -148,12 +148,18 @@ class _Snapshot:
     def read(self) -> tuple[np.ndarray, float | None, int | None]:
         import cv2
 
-        reply = self.link.get(self.path, idempotent=True)
-        if reply.status != 200:
-            raise ProtocolError(self.name, f"GET {self.path} answered HTTP {reply.status} {reply.reason}")
-        img = cv2.imdecode(np.frombuffer(reply.body, np.uint8), cv2.IMREAD_COLOR)
-        if img is None:
-            raise ProtocolError(self.name, f"GET {self.path} returned {len(reply.body)} bytes that are not an image")
+        decoded: list[np.ndarray] = []
+
+        def check(reply: Any) -> None:   # inside the retry loop: a garbled frame is fetched again
+            if reply.status != 200:
+                raise ProtocolError(self.name, f"GET {self.path} answered HTTP {reply.status} {reply.reason}")
+            img = cv2.imdecode(np.frombuffer(reply.body, np.uint8), cv2.IMREAD_COLOR)
+            if img is None:
+                raise ProtocolError(self.name, f"GET {self.path} returned {len(reply.body)} bytes that are not an image")
+            decoded[:] = [img]
+
+        reply = self.link.get(self.path, idempotent=True, check=check)
+        img = decoded[0]
         t = reply.headers.get("X-Frame-Time-S")
         seq = reply.headers.get("X-Frame-Seq")
         try:

@@ -12,6 +12,7 @@ import numpy as np
 from drivers.camera import Camera
 from drivers.errors import DeviceError
 from drivers.ipjr import Ipjr
+from drivers.ownership import Claims
 from drivers.stewart import Stewart
 from drivers.turntable import Turntable
 from lab.comms import CommsSink, null_sink
@@ -30,6 +31,7 @@ class Devices:
     stewart: Stewart | None = None
     camera: Camera | None = None
     ipjrs: dict[str, Ipjr] = field(default_factory=dict)
+    claims: Claims = field(default_factory=Claims)   # this process owns these devices until close()
 
     def all(self) -> list[tuple[str, Any]]:
         out: list[tuple[str, Any]] = []
@@ -59,11 +61,14 @@ class Devices:
         return outcome
 
     def close(self) -> None:
-        for _, dev in self.all():
-            try:
-                dev.close()
-            except Exception:
-                pass
+        try:
+            for _, dev in self.all():
+                try:
+                    dev.close()
+                except Exception:
+                    pass
+        finally:
+            self.claims.release_all()
 
     def __enter__(self) -> Devices:
         return self
@@ -76,9 +81,12 @@ class Devices:
             self.close()
 
 
-def connect(rig: Rig, sink: CommsSink = null_sink, only: Iterable[str] | None = None) -> Devices:
+def connect(rig: Rig, sink: CommsSink = null_sink, only: Iterable[str] | None = None, *, claim: bool = True) -> Devices:
     """Driver objects for the rig's devices (all, or the names in `only`).  Opening is lazy: no
-    byte is sent until the first request, so this cannot fail on an unplugged device."""
+    byte is sent until the first request, so this cannot fail on an unplugged device.
+
+    Every device is claimed first (drivers/ownership.py): if another process owns one, this raises
+    `DeviceBusy` naming it and its holder, having sent nothing to any device."""
     wanted = set(only) if only is not None else None
     unknown = (wanted or set()) - {n for n, _, _ in rig.devices()}
     if unknown:
@@ -88,6 +96,14 @@ def connect(rig: Rig, sink: CommsSink = null_sink, only: Iterable[str] | None = 
         return wanted is None or name in wanted
 
     devs = Devices(rig)
+    if claim:
+        try:
+            for name, _, url in rig.devices():
+                if want(name):
+                    devs.claims.take(name, url)
+        except BaseException:
+            devs.claims.release_all()
+            raise
     if rig.turntable and want(rig.turntable.name):
         devs.turntable = Turntable.open(rig.turntable, sink)
     if rig.stewart and want(rig.stewart.name):

@@ -24,8 +24,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from drivers.errors import LengthControlError, OutOfRange, ProtocolError
-from drivers.motion import MotionPlan, Poll, Progress, send_motion, stop_quietly, wait_until_idle
+from drivers.errors import Disconnected, LengthControlError, OutOfRange, ProtocolError
+from drivers.motion import MotionPlan, Poll, Progress, link_drops, sent_motion, stop_quietly, wait_until_idle
 from drivers.transport import HttpTransport, LineTransport, Transport
 from drivers.wire import parse_fields, parse_float
 from lab.comms import CommsSink, null_sink
@@ -112,12 +112,16 @@ class _HttpWire:
     def __init__(self, name: str, link: HttpTransport) -> None:
         self.name, self.link = name, link
 
-    def _get(self, path: str, params: dict[str, Any] | None = None, *, idempotent: bool, keys: tuple[str, ...]) -> dict:
-        reply = self.link.get_json(path, params, idempotent=idempotent)
-        missing = [k for k in keys if k not in reply]
-        if missing:
-            raise ProtocolError(self.name, f"reply to GET {path} lacks {', '.join(missing)}: {reply!r}")
-        return reply
+    def _get(self, path: str, params: dict[str, Any] | None = None, *, idempotent: bool, keys: tuple[str, ...],
+             check: Any = None) -> dict:
+        def valid(reply: dict) -> None:   # runs inside the retry loop: a garbled query reply is retried
+            missing = [k for k in keys if k not in reply]
+            if missing:
+                raise ProtocolError(self.name, f"reply to GET {path} lacks {', '.join(missing)}: {reply!r}")
+            if check is not None:
+                check(reply)
+
+        return self.link.get_json(path, params, idempotent=idempotent, check=valid)
 
     def identify(self) -> str:
         r = self._get("/id", idempotent=True, keys=("device", "model", "firmware"))
@@ -126,18 +130,24 @@ class _HttpWire:
         return f"IPJR {r['model']} {r['firmware']}"
 
     def limits(self) -> IpjrHardware:
-        r = self._get("/limits", idempotent=True, keys=("stroke_mm", "step_mm", "speed_mm_s", "settle_s", "max_steps"))
-        try:
-            return IpjrHardware(float(r["stroke_mm"]), float(r["step_mm"]), float(r["speed_mm_s"]),
-                                float(r["settle_s"]), int(r["max_steps"]))
-        except (TypeError, ValueError):
-            raise ProtocolError(self.name, f"reply to GET /limits has a non-number: {r!r}") from None
+        def numbers(r: dict) -> None:
+            for k in ("stroke_mm", "step_mm", "speed_mm_s", "settle_s", "max_steps"):
+                v = r[k]
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                    raise ProtocolError(self.name, f"reply to GET /limits: {k} {v!r} is not a number")
+
+        r = self._get("/limits", idempotent=True, keys=("stroke_mm", "step_mm", "speed_mm_s", "settle_s", "max_steps"),
+                      check=numbers)
+        return IpjrHardware(float(r["stroke_mm"]), float(r["step_mm"]), float(r["speed_mm_s"]),
+                            float(r["settle_s"]), int(r["max_steps"]))
 
     def volts(self) -> float:
-        v = self._get("/volts", idempotent=True, keys=("volts",))["volts"]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise ProtocolError(self.name, f"reply to GET /volts: {v!r} is not a number")
-        return float(v)
+        def number(r: dict) -> None:
+            v = r["volts"]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ProtocolError(self.name, f"reply to GET /volts: {v!r} is not a number")
+
+        return float(self._get("/volts", idempotent=True, keys=("volts",), check=number)["volts"])
 
     def step(self, n: int) -> None:
         r = self._get("/step", {"steps": n}, idempotent=False, keys=("accepted",))
@@ -145,10 +155,11 @@ class _HttpWire:
             raise ProtocolError(self.name, f"GET /step?steps={n} was not accepted: {r!r}")
 
     def moving(self) -> bool:
-        m = self._get("/moving", idempotent=True, keys=("moving",))["moving"]
-        if not isinstance(m, bool):
-            raise ProtocolError(self.name, f"reply to GET /moving: {m!r} is not true/false")
-        return m
+        def boolean(r: dict) -> None:
+            if not isinstance(r["moving"], bool):
+                raise ProtocolError(self.name, f"reply to GET /moving: {r['moving']!r} is not true/false")
+
+        return bool(self._get("/moving", idempotent=True, keys=("moving",), check=boolean)["moving"])
 
     def stop(self) -> None:
         self._get("/stop", idempotent=True, keys=("stopped",))
@@ -170,6 +181,7 @@ class Ipjr:
         self.link = wire.link
         self._hw: IpjrHardware | None = None
         self.attach_offset_m: float | None = None
+        self.moved = False      # a motion command has been sent by this driver (what a clean-up may stop)
 
     @classmethod
     def open(cls, config: IpjrConfig, sink: CommsSink = null_sink) -> Ipjr:
@@ -243,10 +255,12 @@ class Ipjr:
     def step(self, n: int, progress: Progress | None = None, *, extension_m: float | None = None) -> None:
         """Move n steps and wait until the actuator has stopped.  Refused before sending if |n| is
         beyond the device's max_steps or the move would run past either end of the stroke."""
-        if isinstance(n, bool) or int(n) != n or n == 0:
+        if isinstance(n, bool) or not isinstance(n, (int, float)) or not math.isfinite(n) or int(n) != n or n == 0:
             raise ValueError(f"{self.name}: steps must be a non-zero integer, got {n!r}")
         n = int(n)
         ext = self.measure_extension() if extension_m is None else extension_m
+        if not math.isfinite(ext):
+            raise ValueError(f"{self.name}: extension {ext!r} is not a finite number of m")
         c = self.config
         predicted = ext + n * c.step_m
         if not -0.5 * c.step_m <= predicted <= c.stroke_m + 0.5 * c.step_m:
@@ -255,8 +269,8 @@ class Ipjr:
         hw = self.hardware()
         if abs(n) > hw.max_steps:
             raise OutOfRange(self.name, "step count", n, (-hw.max_steps, hw.max_steps), "steps", "device max_steps")
-        plan = MotionPlan.of(f"{n} steps", abs(n) * hw.step_mm, hw.speed_mm_s, hw.settle_s, c.link.margin_s)
-        send_motion(self.name, lambda: self.wire.step(n), self.wire.stop)
+        plan = MotionPlan.of(f"{n} steps", abs(n) * hw.step_mm, hw.speed_mm_s, hw.settle_s, c.link.margin_s, self.name)
+        sent_motion(self, lambda: self.wire.step(n), self.wire.stop)
 
         def poll() -> Poll:
             return Poll(self.wire.moving(), 0.5, "actuator still moving")
@@ -274,6 +288,8 @@ class Ipjr:
         measured = self.measure_length()
         strikes = 0
         moves: list[float] = []
+        drops0 = drops = link_drops(self.link)
+        cut_short = 0          # consecutive moves during which the link dropped
         for attempt in range(1, c.max_tries + 1):
             err = length_m - measured
             if abs(err) < c.tolerance_m:
@@ -289,6 +305,13 @@ class Ipjr:
                 progress(min(1.0, attempt / c.max_tries))
             new = self.measure_length()
             history.append((n, new))
+            now = link_drops(self.link)
+            cut_short = cut_short + 1 if now > drops else 0
+            drops = now
+            if cut_short >= 2:   # the link keeps dropping mid-move (the actuator stops each time)
+                stopped = stop_quietly(self.name, self.wire.stop)
+                raise Disconnected(self.name, f"link to {self.link.url} lost during {cut_short} moves in a row; "
+                                              f"length control gave up at error {self._mm(length_m, history)}; {stopped}")
             moves.append(abs(new - measured) / (abs(n) * c.step_m))   # fraction of the commanded move
             strikes = strikes + 1 if abs(length_m - new) >= abs(err) else 0
             if strikes >= 2:   # twice in a row no closer: stop before it gets worse
@@ -303,8 +326,10 @@ class Ipjr:
         err = length_m - measured
         if abs(err) < c.tolerance_m:
             return LengthResult(measured, err, c.max_tries, history)
+        lost = link_drops(self.link) - drops0
         raise self._fail(f"length {length_m:.5f} m not reached within {c.tolerance_m * 1000:g} mm after "
-                         f"{c.max_tries} tries; error {self._mm(length_m, history)}", history)
+                         f"{c.max_tries} tries; error {self._mm(length_m, history)}"
+                         + (f"; the link to {self.link.url} was lost {lost} times meanwhile" if lost else ""), history)
 
     @staticmethod
     def _mm(target: float, history: list[tuple[int, float]]) -> str:

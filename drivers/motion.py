@@ -4,13 +4,18 @@ Bluesky's invariant, small: whatever happens, what moved is stopped and the erro
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Callable
 
-from drivers.errors import DeviceError, DeviceFault, DeviceTimeout
+from drivers.errors import DeviceError, DeviceFault, DeviceTimeout, Disconnected, MotionIncomplete, OutOfRange
 
 Progress = Callable[[float], None]   # fraction done, 0..1
+
+# No single move of any device we drive takes longer: a plan beyond it is a wrong speed (a rig or
+# device reporting 0.001 deg/s) or a wrong distance, and is refused before anything is sent.
+MAX_MOVE_S = 900.0
 
 
 @dataclass(frozen=True)
@@ -22,9 +27,14 @@ class MotionPlan:
     timeout_s: float      # 1.5 x travel time + settle + margin
 
     @staticmethod
-    def of(description: str, distance: float, speed: float, settle_s: float, margin_s: float) -> MotionPlan:
+    def of(description: str, distance: float, speed: float, settle_s: float, margin_s: float,
+           device: str = "") -> MotionPlan:
         travel = abs(distance) / speed if speed > 0 else 0.0
-        return MotionPlan(description, travel + settle_s, 1.5 * travel + settle_s + margin_s)
+        expected = travel + settle_s
+        if not (math.isfinite(expected) and expected <= MAX_MOVE_S):
+            raise OutOfRange(device or "device", f"duration of the move {description}", expected, (0.0, MAX_MOVE_S), "s",
+                             f"{abs(distance):.6g} at {speed:.6g} per s")
+        return MotionPlan(description, expected, 1.5 * travel + settle_s + margin_s)
 
 
 @dataclass(frozen=True)
@@ -67,6 +77,33 @@ def send_motion(device: str, send: Callable[[], object], stop: Callable[[], None
     except BaseException as exc:
         annotate(exc, stop_quietly(device, stop))
         raise
+
+
+def sent_motion(driver: object, send: Callable[[], object], stop: Callable[[], None]) -> None:
+    """`send_motion` that also marks the driver as having moved its device (`driver.moved`), which
+    is what a clean-up may stop: a run never stops a device it did not move.  A clean refusal
+    (error code below 50) moved nothing and leaves the mark as it was."""
+    was = getattr(driver, "moved", False)
+    driver.moved = True  # type: ignore[attr-defined]
+    try:
+        send_motion(getattr(driver, "name", "device"), send, stop)
+    except DeviceFault as exc:
+        if exc.code < 50:
+            driver.moved = was  # type: ignore[attr-defined]
+        raise
+
+
+def link_drops(link: object) -> int:
+    return int(getattr(link, "link_drops", 0))
+
+
+def name_link_loss(exc: MotionIncomplete, link: object, drops_before: int) -> DeviceError:
+    """A motion that ended short after the link dropped (and came back) was stopped by the link
+    loss: say so, instead of blaming the motion."""
+    if link_drops(link) > drops_before:
+        return Disconnected(exc.device, f"link to {getattr(link, 'url', '?')} lost during the move ({exc.message}); "
+                                        f"the device stops on link loss")
+    return exc
 
 
 def wait_until_idle(device: str, plan: MotionPlan, poll: Callable[[], Poll], stop: Callable[[], None],

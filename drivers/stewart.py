@@ -11,13 +11,14 @@ mounting: world_T_base * base_T_platform * platform_T_camera."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 
-from drivers.errors import DeviceFault, MotionIncomplete, ProtocolError, RigMismatch, WorkspaceError
-from drivers.motion import MotionPlan, Poll, Progress, send_motion, wait_until_idle
+from drivers.errors import DeviceFault, MotionIncomplete, OutOfRange, ProtocolError, RigMismatch, WorkspaceError
+from drivers.motion import MotionPlan, Poll, Progress, link_drops, name_link_loss, sent_motion, wait_until_idle
 from drivers.stewart_kinematics import IkResult, StewartKinematics, as_pose, describe
 from drivers.transport import LineTransport
 from drivers.wire import parse_fields, parse_float, parse_floats
@@ -56,6 +57,7 @@ class Stewart:
         self.kinematics = StewartKinematics(config.geometry)
         self._hw: StewartHardware | None = None
         self._last_pose = Pose3()
+        self.moved = False      # a motion command has been sent by this driver (what a clean-up may stop)
 
     @classmethod
     def open(cls, config: StewartConfig, sink: CommsSink = null_sink) -> Stewart:
@@ -126,21 +128,28 @@ class Stewart:
 
     def move_to(self, pose: Pose3 | Sequence[float], progress: Progress | None = None) -> Pose3:
         """Move the platform to a pose relative to home (checked first); returns the reported pose."""
+        legs_m = self.check_pose(pose)
         target = as_pose(pose)
-        legs_m = self.check_pose(target)
         return self._move_legs(legs_m, f"to {describe(target)}", progress)
 
     def home(self, progress: Progress | None = None) -> Pose3:
         return self.move_to(Pose3(), progress)
 
     def _move_legs(self, legs_m: np.ndarray, description: str, progress: Progress | None) -> Pose3:
+        g = self.config.geometry
+        legs_m = np.asarray(legs_m, dtype=float).reshape(6)
+        for i, x in enumerate(legs_m):   # the last check before the wire, whatever the caller did
+            if not (math.isfinite(x) and g.leg_min_m - 1e-9 <= x <= g.leg_max_m + 1e-9):
+                raise OutOfRange(self.name, f"leg {i + 1} length", x * 1000, (g.leg_min_m * 1000, g.leg_max_m * 1000),
+                                 "mm", "rig [stewart] leg_min_m/leg_max_m")
         hw = self.hardware()
         start = self.legs()
         target_mm = np.round(legs_m * 1000.0, 3)
         plan = MotionPlan.of(description, float(np.max(np.abs(target_mm - start * 1000.0))), hw.speed_mm_s,
-                             hw.settle_s, self.config.link.margin_s)
+                             hw.settle_s, self.config.link.margin_s, self.name)
+        drops = link_drops(self.link)
         line = "LEGS " + " ".join(f"{x:.3f}" for x in target_mm)
-        send_motion(self.name, lambda: self.link.request(line, idempotent=False), self.stop)
+        sent_motion(self, lambda: self.link.request(line, idempotent=False), self.stop)
         span = float(np.max(np.abs(target_mm / 1000.0 - start))) or 1.0
 
         def poll() -> Poll:
@@ -158,8 +167,9 @@ class Stewart:
         err = np.abs(reached * 1000.0 - target_mm)
         if np.max(err) > ARRIVAL_TOLERANCE_MM:
             i = int(np.argmax(err))
-            raise MotionIncomplete(self.name, f"stopped short of the target {description}: leg {i + 1} at "
-                                              f"{reached[i] * 1000:.3f} mm, commanded {target_mm[i]:.3f} mm")
+            raise name_link_loss(MotionIncomplete(
+                self.name, f"stopped short of the target {description}: leg {i + 1} at "
+                           f"{reached[i] * 1000:.3f} mm, commanded {target_mm[i]:.3f} mm"), self.link, drops)
         return self.pose()
 
     def close(self) -> None:

@@ -32,11 +32,42 @@ class IkResult:
     platform_joint_angles_rad: np.ndarray  # (6,) leg vs platform normal
 
 
+MAX_TRANSLATION_M = 10.0     # no Stewart platform we drive reaches further; beyond it floats lose mm
+_NAMES = ("x", "y", "z", "roll", "pitch", "yaw")
+
+
+def pose_problem(pose: Pose3 | Sequence[float]) -> str:
+    """Why a pose is not a pose at all ("" if it is one): a non-finite value, an angle outside
+    [-pi, pi] (1e12 rad names no orientation anyone meant), a translation beyond 10 m."""
+    if isinstance(pose, Pose3):
+        if not np.all(np.isfinite(pose.matrix())):
+            return "the pose has a non-finite entry"
+        v = np.asarray(to_xyzrpy(pose), dtype=float)
+    else:
+        try:
+            v = np.asarray(pose, dtype=float).reshape(6)
+        except (TypeError, ValueError):
+            return f"a pose is six numbers (x y z roll pitch yaw), got {pose!r}"
+    for name, x in zip(_NAMES, v):
+        if not math.isfinite(x):
+            return f"{name} {x} is not a finite number"
+    for name, x in zip(_NAMES[:3], v[:3]):
+        if abs(x) > MAX_TRANSLATION_M:
+            return f"{name} {x:.6g} m is outside [-{MAX_TRANSLATION_M:g}, {MAX_TRANSLATION_M:g}] m"
+    for name, x in zip(_NAMES[3:], v[3:]):
+        if abs(x) > math.pi + 1e-9:
+            return f"{name} {x:.6g} rad is outside [-pi, pi] rad"
+    return ""
+
+
 def as_pose(pose: Pose3 | Sequence[float]) -> Pose3:
     return pose if isinstance(pose, Pose3) else from_xyzrpy(pose)
 
 
 def describe(pose: Pose3 | Sequence[float]) -> str:
+    if pose_problem(pose):
+        return repr([float(x) for x in np.asarray(pose if not isinstance(pose, Pose3) else to_xyzrpy(pose),
+                                                   dtype=float).reshape(-1)])
     v = to_xyzrpy(as_pose(pose))
     return ("(x {:.4f}, y {:.4f}, z {:.4f} m; roll {:.2f}, pitch {:.2f}, yaw {:.2f} deg)"
             .format(*v[:3], *np.degrees(v[3:])))
@@ -67,6 +98,12 @@ class StewartKinematics:
         return self.leg_lengths(Pose3())
 
     def inverse(self, home_T_platform: Pose3 | Sequence[float]) -> IkResult:
+        bad = pose_problem(home_T_platform)
+        if bad:
+            nan6 = np.full(6, np.nan)
+            raw = np.asarray(to_xyzrpy(home_T_platform), dtype=float) if isinstance(home_T_platform, Pose3) \
+                else np.asarray(home_T_platform, dtype=float).reshape(-1)
+            return IkResult(raw, nan6, False, bad, nan6, nan6)
         pose = as_pose(home_T_platform)
         v = self.legs_vectors(pose)
         legs = np.linalg.norm(v, axis=1)
@@ -133,8 +170,8 @@ class StewartKinematics:
         """The `lab stewart ik --json` shape."""
         res = self.inverse(pose6)
         return {
-            "pose": [float(x) for x in pose6],
-            "legs_m": [float(x) for x in res.legs_m],
+            "pose": [float(x) if math.isfinite(float(x)) else str(float(x)) for x in pose6],
+            "legs_m": [float(x) if math.isfinite(x) else None for x in res.legs_m],
             "reachable": bool(res.reachable),
             "reason": res.reason,
             "base_joints_m": self.base.tolist(),

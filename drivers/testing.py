@@ -7,7 +7,9 @@ real HTTP server for GET APIs), and a fast simulated rig.
         assert tt.position() == pytest.approx(math.pi / 2)
     # leaving the block asserts every expected request arrived, in order, and nothing else
 
-A reply of None sends nothing (the driver must time out); any bytes may be sent (garbled)."""
+A reply of None sends nothing (the driver must time out); any bytes may be sent (garbled).
+Request tags (`#17 `, docs/protocols.md §1) are stripped before comparing and put in front of the
+scripted reply."""
 
 from __future__ import annotations
 
@@ -65,6 +67,7 @@ class ScriptedLineDevice:
                     while b"\n" in buf:
                         line, buf = buf.split(b"\n", 1)
                         line += b"\n"
+                        tag, line = _untag(line)
                         self.received.append(line)
                         if self._i >= len(self.exchanges):
                             self.problems.append(f"unexpected extra request {line!r}")
@@ -74,7 +77,7 @@ class ScriptedLineDevice:
                         if line != want:
                             self.problems.append(f"request {self._i}: expected {want!r}, got {line!r}")
                         if reply is not None:
-                            conn.sendall(reply)
+                            conn.sendall(tag + reply)
 
     def __enter__(self) -> ScriptedLineDevice:
         self._thread.start()
@@ -92,6 +95,15 @@ class ScriptedLineDevice:
             self.problems.append(f"expected requests never sent: {[w for w, _ in self.exchanges[self._i:]]}")
         if self.problems:
             raise ScriptError("; ".join(self.problems))
+
+
+def _untag(line: bytes) -> tuple[bytes, bytes]:
+    """(`#17 `, `POS?\n`) from a tagged request line; scripts are written without tags, and the
+    scripted reply goes back with the request's tag, as a device does (docs/protocols.md §1)."""
+    head, sep, rest = line.partition(b" ")
+    if sep and head[:1] == b"#" and head[1:].isdigit():
+        return head + b" ", rest
+    return b"", line
 
 
 class ScriptedHttpDevice:

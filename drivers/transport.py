@@ -10,7 +10,12 @@ Both share the base class `Transport`, which owns what no driver may skip:
   request + reply transaction;
 - the comms log: every byte sent (`tx`) and received (`rx`), and every timeout, retry and
   reconnect (`event`), goes to the `CommsSink`;
-- bounded retries, for idempotent requests only, with reconnect on a dropped link.
+- bounded retries, for idempotent requests only, with reconnect on a dropped link;
+- no value that is not a finite number reaches a device (`nan`, `inf` are refused before sending).
+
+On the serial line every request carries a tag (`#17 POS?`) that the device echoes (`#17 OK 1.0`),
+so a late reply to an earlier request that timed out is recognised and discarded, never taken for
+the reply to the request in flight (docs/protocols.md §1).
 """
 
 from __future__ import annotations
@@ -31,7 +36,17 @@ from drivers.errors import DeviceError, DeviceFault, DeviceTimeout, Disconnected
 from lab.comms import CommsRecord, CommsSink, null_sink
 
 MAX_LINE = 128            # bytes, docs/protocols.md §1
+MAX_TAG = 9999            # request tags run 1..MAX_TAG and wrap
 RECONNECT_BACKOFF_S = (0.05, 0.2, 0.5)
+_NON_FINITE = {"nan", "+nan", "-nan", "inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"}
+
+
+def refuse_non_finite(device: str, what: str, tokens: list[str]) -> None:
+    """A request carrying `nan` or `inf` is a bug upstream; it never reaches a device."""
+    for t in tokens:
+        low = t.strip().lower()
+        if low in _NON_FINITE:
+            raise ValueError(f"{device}: refusing to send {what!r}: {t!r} is not a finite number")
 
 _locks_guard = threading.Lock()
 _port_locks: dict[str, threading.RLock] = {}
@@ -65,6 +80,7 @@ class Transport:
         self.reply_timeout_s = reply_timeout_s
         self.retries = retries
         self.lock = port_lock(url)
+        self.link_drops = 0        # times the link was found lost (a motion's clean-up names it)
 
     # -- the comms log ------------------------------------------------------------------------
     def _log(self, direction: str, data: bytes, note: str = "") -> None:
@@ -93,6 +109,7 @@ class Transport:
             except (DeviceTimeout, ProtocolError, Disconnected) as exc:
                 last = exc
                 if isinstance(exc, Disconnected):
+                    self.link_drops += 1
                     self.close()
                     if attempt + 1 < attempts:
                         time.sleep(RECONNECT_BACKOFF_S[min(attempt, len(RECONNECT_BACKOFF_S) - 1)])
@@ -147,8 +164,11 @@ class LineTransport(Transport):
             if self._port is not None:
                 return
             try:
+                # a real port (a device path, not a URL) is opened exclusively (flock): a second
+                # process cannot talk over this one's requests
+                extra = {"exclusive": True} if "://" not in self.url else {}
                 self._port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=self.reply_timeout_s,
-                                                   write_timeout=self.reply_timeout_s)
+                                                   write_timeout=self.reply_timeout_s, **extra)
             except (serial.SerialException, OSError, ValueError) as exc:
                 self.event(f"open failed: {exc}")
                 raise Disconnected(self.device, f"cannot open {self.url}: {_why(exc)}") from None
@@ -176,18 +196,27 @@ class LineTransport(Transport):
         `idempotent` defaults to "is a query" (ends in `?`); only idempotent requests are retried."""
         if "\n" in line or "\r" in line:
             raise ValueError(f"a request is one line, got {line!r}")
-        if len(line) + 1 > MAX_LINE:
-            raise ValueError(f"request {line!r} is longer than {MAX_LINE} bytes")
+        if len(line) + len(f"#{MAX_TAG} ") + 1 > MAX_LINE:
+            raise ValueError(f"request {line!r} is longer than {MAX_LINE} bytes with its tag")
+        refuse_non_finite(self.device, line, line.split()[1:])
         if idempotent is None:
             idempotent = line.endswith("?")
         with self.lock:
             return self._with_retries(line, idempotent, lambda: self._exchange(line))
 
+    _seq = 0
+
+    def _next_tag(self) -> str:
+        self._seq = self._seq % MAX_TAG + 1
+        return f"#{self._seq}"
+
     def _exchange(self, line: str) -> str:
         self.open()
         port = self._port
         assert port is not None
-        data = (line + "\n").encode("ascii")
+        tag = self._next_tag()
+        data = f"{tag} {line}\n".encode("ascii")
+        deadline = time.monotonic() + self.reply_timeout_s
         try:
             stale = bytearray()
             while port.in_waiting and len(stale) < 4096:
@@ -197,19 +226,44 @@ class LineTransport(Transport):
             self._log("tx", data)
             port.write(data)
             port.flush()
-            raw = port.read_until(b"\n", MAX_LINE)
+            while True:
+                port.timeout = max(0.001, deadline - time.monotonic())
+                raw = port.read_until(b"\n", MAX_LINE)
+                if not raw.endswith(b"\n"):
+                    break
+                got, _, rest = raw.partition(b" ")
+                if got == tag.encode():
+                    break
+                if _is_tag(got):  # a reply to an earlier request (it timed out): not this one's
+                    self._log("rx", raw, f"stale reply discarded (tag {got.decode()}, expected {tag})")
+                    continue
+                break  # untagged or garbled: reported below
         except (serial.SerialException, OSError) as exc:
             self.event(f"link lost: {exc}")
             raise Disconnected(self.device, f"connection to {self.url} lost during {line!r}: {_why(exc)}") from None
+        finally:
+            if self._port is not None:
+                try:
+                    self._port.timeout = self.reply_timeout_s
+                except Exception:
+                    pass
         if raw:
             self._log("rx", raw)
         if not raw.endswith(b"\n"):
             if len(raw) >= MAX_LINE:
                 raise ProtocolError(self.device, f"reply to {line!r} longer than {MAX_LINE} bytes: {raw[:40]!r}...")
             self.event(f"timeout: no complete reply to {line!r} within {self.reply_timeout_s:g} s")
-            got = f" (got {raw!r})" if raw else ""
-            raise DeviceTimeout(self.device, f"no reply to {line!r} within {self.reply_timeout_s:g} s{got}")
-        return parse_reply(self.device, line, raw)
+            got_text = f" (got {raw!r})" if raw else ""
+            raise DeviceTimeout(self.device, f"no reply to {line!r} within {self.reply_timeout_s:g} s{got_text}")
+        got, _, rest = raw.partition(b" ")
+        if got != tag.encode():
+            parse_reply(self.device, line, raw)   # garbled bytes are reported as such
+            raise ProtocolError(self.device, f"reply to {line!r} does not carry its tag {tag}: {raw!r}")
+        return parse_reply(self.device, line, rest)
+
+
+def _is_tag(token: bytes) -> bool:
+    return len(token) >= 2 and token[:1] == b"#" and token[1:].isdigit() and len(token) <= 1 + len(str(MAX_TAG))
 
 
 def _close_port(port: serial.SerialBase) -> None:
@@ -290,22 +344,49 @@ class HttpTransport(Transport):
         self.base_path = parts.path.rstrip("/")
 
     def get(self, path: str, params: dict[str, Any] | None = None, *, idempotent: bool,
-            timeout_s: float | None = None) -> HttpReply:
+            timeout_s: float | None = None, check: Callable[[HttpReply], None] | None = None) -> HttpReply:
         """One GET; a 5xx is raised as DeviceFault (code = HTTP status) and retried if idempotent.
-        Other statuses are returned for the caller to interpret."""
+        Other statuses are returned for the caller to interpret.  `check` (raising ProtocolError)
+        runs inside the retry loop."""
+        target = self._target(path, params)
+
+        def once() -> HttpReply:
+            reply = self._exchange(target, timeout_s or self.reply_timeout_s)
+            if check is not None:
+                check(reply)
+            return reply
+
+        with self.lock:
+            return self._with_retries(f"GET {target}", idempotent, once)
+
+    def _target(self, path: str, params: dict[str, Any] | None) -> str:
         target = (self.base_path + path) if path.startswith("/") else f"{self.base_path}/{path}"
         if params:
+            refuse_non_finite(self.device, f"GET {path}", [str(v) for v in params.values()])
             target += "?" + urllib.parse.urlencode(params)
-        with self.lock:
-            return self._with_retries(f"GET {target}", idempotent,
-                                      lambda: self._exchange(target, timeout_s or self.reply_timeout_s))
+        return target
 
     def get_json(self, path: str, params: dict[str, Any] | None = None, *, idempotent: bool,
-                 timeout_s: float | None = None) -> dict[str, Any]:
+                 timeout_s: float | None = None,
+                 check: Callable[[dict[str, Any]], None] | None = None) -> dict[str, Any]:
         """A GET whose 200 reply is a JSON object; an error status becomes DeviceFault with the
-        device's error code and text (docs/protocols.md §5)."""
-        reply = self.get(path, params, idempotent=idempotent, timeout_s=timeout_s)
+        device's error code and text (docs/protocols.md §5).  The reply is parsed and `check`ed
+        (raising ProtocolError) inside the retry loop, so a garbled reply to a query is retried
+        like a lost one."""
+        target = self._target(path, params)
         what = f"GET {path}" + (f"?{urllib.parse.urlencode(params)}" if params else "")
+
+        def once() -> dict[str, Any]:
+            reply = self._exchange(target, timeout_s or self.reply_timeout_s)
+            value = self._json_of(reply, what)
+            if check is not None:
+                check(value)
+            return value
+
+        with self.lock:
+            return self._with_retries(f"GET {target}", idempotent, once)
+
+    def _json_of(self, reply: HttpReply, what: str) -> dict[str, Any]:
         if reply.status == 200:
             return reply.json(self.device, what)
         code, text = reply.status, reply.reason

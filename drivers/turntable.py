@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass
 
 from drivers.errors import DeviceFault, MotionIncomplete, OutOfRange, ProtocolError, RigMismatch
-from drivers.motion import MotionPlan, Poll, Progress, send_motion, wait_until_idle
+from drivers.motion import MotionPlan, Poll, Progress, link_drops, name_link_loss, sent_motion, wait_until_idle
 from drivers.transport import LineTransport
 from drivers.wire import parse_fields, parse_float
 from lab.comms import CommsSink, null_sink
@@ -48,6 +48,7 @@ class Turntable:
         self.name = config.name
         self.link = transport
         self._hw: TurntableHardware | None = None
+        self.moved = False      # a motion command has been sent by this driver (what a clean-up may stop)
 
     @classmethod
     def open(cls, config: TurntableConfig, sink: CommsSink = null_sink) -> Turntable:
@@ -117,12 +118,14 @@ class Turntable:
         st = self.status()
         # Before homing the reported angle may be anything: allow a full sweep of the travel.
         distance = abs(math.degrees(st.angle_rad)) if st.homed else hw.max_deg - hw.min_deg
-        plan = MotionPlan.of("home", distance, hw.speed_deg_s, hw.settle_s, self.config.link.margin_s)
+        plan = MotionPlan.of("home", distance, hw.speed_deg_s, hw.settle_s, self.config.link.margin_s, self.name)
+        drops = link_drops(self.link)
         self._command("HOME")
         final = self._wait(plan, 0.0, math.degrees(st.angle_rad), progress)
         if not final.homed:
-            raise MotionIncomplete(self.name, f"homing ended without finding the index (at "
-                                              f"{math.degrees(final.angle_rad):.3f} deg)")
+            raise name_link_loss(MotionIncomplete(self.name, f"homing ended without finding the index (at "
+                                                             f"{math.degrees(final.angle_rad):.3f} deg)"),
+                                 self.link, drops)
         return final.angle_rad
 
     def move_to(self, angle_rad: float, progress: Progress | None = None) -> float:
@@ -133,13 +136,15 @@ class Turntable:
         target_deg = math.degrees(angle_rad)
         start_deg = math.degrees(start.angle_rad)
         plan = MotionPlan.of(f"to {target_deg:.3f} deg", target_deg - start_deg, hw.speed_deg_s, hw.settle_s,
-                             self.config.link.margin_s)
+                             self.config.link.margin_s, self.name)
+        drops = link_drops(self.link)
         self._command(f"MOVE {target_deg:.3f}")
         final = self._wait(plan, target_deg, start_deg, progress)
         reached = math.degrees(final.angle_rad)
         if abs(reached - target_deg) > ARRIVAL_TOLERANCE_DEG:
-            raise MotionIncomplete(self.name, f"stopped at {reached:.3f} deg, short of the target {target_deg:.3f} deg "
-                                              f"(state {final.state}, fault {final.fault})")
+            raise name_link_loss(MotionIncomplete(
+                self.name, f"stopped at {reached:.3f} deg, short of the target {target_deg:.3f} deg "
+                           f"(state {final.state}, fault {final.fault})"), self.link, drops)
         return final.angle_rad
 
     def ensure_homed(self, progress: Progress | None = None) -> None:
@@ -147,7 +152,7 @@ class Turntable:
             self.home(progress)
 
     def _command(self, line: str) -> None:
-        send_motion(self.name, lambda: self.link.request(line, idempotent=False), self.stop)
+        sent_motion(self, lambda: self.link.request(line, idempotent=False), self.stop)
 
     def _wait(self, plan: MotionPlan, target_deg: float, start_deg: float, progress: Progress | None) -> TurntableStatus:
         span = abs(target_deg - start_deg) or 1.0

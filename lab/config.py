@@ -245,8 +245,10 @@ def load_rig(path: str | Path | None = None) -> Rig:
         text = p.read_text()
     except FileNotFoundError:
         raise RigError(f"rig {p}: no such file") from None
+    except UnicodeDecodeError:
+        raise RigError(f"rig {p}: not a text file (not UTF-8)") from None
     except OSError as exc:
-        raise RigError(f"rig {p}: cannot read it: {exc.strerror}") from None
+        raise RigError(f"rig {p}: cannot read it: {exc.strerror or exc}") from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -305,7 +307,7 @@ def parse_rig(data: dict[str, Any], source: str = "<dict>", base_dir: Path | Non
             if not cal_path.exists():
                 raise c.error("calibration", f"no such file: {cal_path}")
         platform_T_camera = c.pose("platform_T_camera")
-        timeout_s = c.number("timeout_s", default=2.0, positive=True, unit="s")
+        timeout_s = c.number("timeout_s", default=2.0, positive=True, maximum=60.0, unit="s")
         c.done()
         camera = CameraConfig(nm, url, cal_path, platform_T_camera, timeout_s)
 
@@ -327,8 +329,8 @@ def parse_rig(data: dict[str, Any], source: str = "<dict>", base_dir: Path | Non
             tol = i.number("tolerance_m", default=0.0005, positive=True, unit="m")
             if tol < step / 2:
                 raise i.error("tolerance_m", f"{tol} m is below half a step ({step / 2} m): the controller could never settle")
-            tries = i.integer("max_tries", default=8, minimum=1)
-            samples = i.integer("samples", default=4, minimum=1)
+            tries = i.integer("max_tries", default=8, minimum=1, maximum=100)
+            samples = i.integer("samples", default=4, minimum=1, maximum=100)
             i.done()
             ipjrs[nm] = IpjrConfig(nm, link, stroke, step, v0, v1, tol, tries, samples)
         group.done()
@@ -350,9 +352,9 @@ def _link(t: _Table) -> Link:
         raise t.error("url", "must not be empty")
     return Link(
         url=url,
-        reply_timeout_s=t.number("reply_timeout_s", default=0.5, positive=True, unit="s"),
+        reply_timeout_s=t.number("reply_timeout_s", default=0.5, positive=True, maximum=60.0, unit="s"),
         retries=t.integer("retries", default=2, minimum=0, maximum=10),
-        margin_s=t.number("margin_s", default=1.0, minimum=0.0, unit="s"),
+        margin_s=t.number("margin_s", default=1.0, minimum=0.0, maximum=600.0, unit="s"),
     )
 
 
@@ -414,25 +416,31 @@ def _stewart_geometry(s: _Table) -> StewartGeometry:
 
 _SIM_DEVICE_KEYS: dict[str, dict[str, tuple[float, float]]] = {
     # key: (default, minimum) -- physical parameters of the simulated devices (docs/hardware.md)
-    "turntable": {"speed_deg_s": (10.0, 1e-6), "settle_s": (0.3, 0.0), "min_deg": (-360.0, -1e9),
-                  "max_deg": (360.0, -1e9)},
-    "stewart": {"speed_mm_s": (20.0, 1e-6), "settle_s": (0.2, 0.0), "stroke_margin_mm": (10.0, 0.0)},
-    "ipjr": {"speed_mm_s": (10.0, 1e-6), "settle_s": (0.1, 0.0), "volts_noise_v": (0.002, 0.0),
+    "turntable": {"speed_deg_s": (10.0, 1.0), "settle_s": (0.3, 0.0), "min_deg": (-360.0, -1e4),
+                  "max_deg": (360.0, -1e4)},
+    "stewart": {"speed_mm_s": (20.0, 1.0), "settle_s": (0.2, 0.0), "stroke_margin_mm": (10.0, 0.0)},
+    "ipjr": {"speed_mm_s": (10.0, 1.0), "settle_s": (0.1, 0.0), "volts_noise_v": (0.002, 0.0),
              "step_scale_sigma": (0.02, 0.0), "move_sigma_m": (0.00005, 0.0), "calibration_sigma_v": (0.005, 0.0),
              "start_extension_m": (0.07, 0.0)},
 }
+# A simulated device slower than this never finishes a run (a 0.001 deg/s turntable), one faster is
+# no instrument: refused with the key named.  `--speedup` has the same ceiling.
+_SIM_MAXIMA = {"speed_deg_s": 720.0, "speed_mm_s": 1000.0, "settle_s": 60.0, "min_deg": 1e4, "max_deg": 1e4,
+               "stroke_margin_mm": 100.0, "volts_noise_v": 1.0, "step_scale_sigma": 0.5, "move_sigma_m": 0.01,
+               "calibration_sigma_v": 1.0, "start_extension_m": 1.0}
+MAX_SPEEDUP = 1000.0
 _SIM_CAMERA_KEYS = {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "dist", "pixel_noise", "blur_px"}
 
 
 def _sim(t: _Table) -> SimConfig:
     seed = t.integer("seed", default=0, minimum=0)
-    speedup = t.number("speedup", default=1.0, positive=True)
+    speedup = t.number("speedup", default=1.0, positive=True, maximum=MAX_SPEEDUP)
     borg_n = t.integer("borg_n", default=3, minimum=2, maximum=8)
     pty = t.boolean("pty", default=True)
     sections: dict[str, dict[str, Any]] = {}
     for dev, keys in _SIM_DEVICE_KEYS.items():
         sub = t.table(dev, required=False)
-        sections[dev] = {k: sub.number(k, default=d, minimum=m) for k, (d, m) in keys.items()}
+        sections[dev] = {k: sub.number(k, default=d, minimum=m, maximum=_SIM_MAXIMA.get(k)) for k, (d, m) in keys.items()}
         sub.done()
     cam = t.table("camera", required=False)
     camera: dict[str, Any] = {}
@@ -548,7 +556,8 @@ class _Table:
         value = self._get(key, _MISSING)
         if not (isinstance(value, list) and len(value) == rows and all(
                 isinstance(r, list) and len(r) == cols and all(
-                    not isinstance(v, bool) and isinstance(v, (int, float)) for v in r) for r in value)):
+                    not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) for v in r)
+                for r in value)):
             self._bad(key, f"{rows} lists of {cols} numbers", value)
         return np.array(value, dtype=float)
 

@@ -4,6 +4,7 @@ error naming the key and the problem."""
 
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,18 +67,50 @@ def _err(source: str, key: str, problem: str) -> UserError:
     return UserError(f"scenario {source}: {key}: {problem}")
 
 
-def _vec3(source: str, key: str, value: Any) -> tuple[float, float, float]:
-    if not (isinstance(value, list) and len(value) == 3 and all(isinstance(v, (int, float)) for v in value)):
+# Bounds on what a scenario may ask of the simulator: beyond them a run is meaningless (a 1e9 m
+# strut error) or never ends, so they are refused rather than run.
+MAX_OFFSET_M = 1.0            # structure faults: offsets and displacements
+MAX_ROTATION_RAD = 3.2        # a little over pi: any orientation, never a wound-up angle
+MAX_SIGMA_M = 0.05            # truss strut / ruler noise
+MAX_PIXEL_NOISE = 100.0       # grey levels
+MAX_BLUR_PX = 20.0
+MAX_FAULT_COMMANDS = 1_000_000
+
+
+def _vec3(source: str, key: str, value: Any, bound: float = MAX_OFFSET_M) -> tuple[float, float, float]:
+    if not (isinstance(value, list) and len(value) == 3 and all(
+            not isinstance(v, bool) and isinstance(v, (int, float)) for v in value)):
         raise _err(source, key, f"expected a list of 3 numbers, got {value!r}")
+    for v in value:
+        if not math.isfinite(v) or abs(v) > bound:
+            raise _err(source, key, f"every value must be a finite number within +-{bound:g}, got {value!r}")
     return tuple(float(v) for v in value)  # type: ignore[return-value]
 
 
-def _number(source: str, key: str, value: Any, *, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise _err(source, key, f"expected a number, got {value!r}")
+def _number(source: str, key: str, value: Any, *, positive: bool = False, minimum: float | None = None,
+            maximum: float | None = None) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise _err(source, key, f"expected a finite number, got {value!r}")
     if positive and value <= 0:
         raise _err(source, key, f"must be > 0, got {value!r}")
+    if minimum is not None and value < minimum:
+        raise _err(source, key, f"must be >= {minimum:g}, got {value!r}")
+    if maximum is not None and value > maximum:
+        raise _err(source, key, f"must be <= {maximum:g}, got {value!r}")
     return float(value)
+
+
+def _table(source: str, key: str, value: Any) -> dict:
+    if not isinstance(value, dict):
+        raise _err(source, key, f"expected a table, got {value!r}")
+    return value
+
+
+def _tables(source: str, key: str, value: Any) -> list[dict]:
+    """An array of tables (`[[borg.fault]]`)."""
+    if not isinstance(value, list):
+        raise _err(source, key, f"expected an array of tables ([[{key}]]), got {value!r}")
+    return [_table(source, f"{key}[{i}]", v) for i, v in enumerate(value)]
 
 
 def _check_keys(source: str, where: str, table: dict, allowed: set[str]) -> None:
@@ -90,13 +123,13 @@ def _check_keys(source: str, where: str, table: dict, allowed: set[str]) -> None
 def parse_scenario(data: dict[str, Any], source: str = "<dict>") -> Scenario:
     _check_keys(source, "", data, {"seed", "borg", "truss", "device", "camera", "rig_error"})
     seed = data.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
         raise _err(source, "seed", f"expected a non-negative integer, got {seed!r}")
 
     borg_faults = []
-    borg = data.get("borg", {})
+    borg = _table(source, "borg", data.get("borg", {}))
     _check_keys(source, "borg", borg, {"fault"})
-    for i, f in enumerate(borg.get("fault", [])):
+    for i, f in enumerate(_tables(source, "borg.fault", borg.get("fault", []))):
         where = f"borg.fault[{i}]"
         kind = f.get("kind")
         if kind not in BORG_FAULT_KINDS:
@@ -106,7 +139,8 @@ def parse_scenario(data: dict[str, Any], source: str = "<dict>") -> Scenario:
             if "module" not in f or "height_m" not in f:
                 raise _err(source, where, "partial_deploy needs module and height_m")
             borg_faults.append(BorgFault(kind, module=str(f["module"]),
-                                         height_m=_number(source, f"{where}.height_m", f["height_m"], positive=True)))
+                                         height_m=_number(source, f"{where}.height_m", f["height_m"], positive=True,
+                                                           maximum=MAX_OFFSET_M)))
         elif kind == "tag_displaced":
             _check_keys(source, where, f, {"kind", "tag", "offset_m", "rotation_rad"})
             tag = f.get("tag")
@@ -114,7 +148,7 @@ def parse_scenario(data: dict[str, Any], source: str = "<dict>") -> Scenario:
                 raise _err(source, f"{where}.tag", f"expected a tag id (integer), got {tag!r}")
             borg_faults.append(BorgFault(kind, tag=tag, offset_m=_vec3(source, f"{where}.offset_m", f.get("offset_m")),
                                          rotation_rad=_vec3(source, f"{where}.rotation_rad",
-                                                            f.get("rotation_rad", [0, 0, 0]))))
+                                                            f.get("rotation_rad", [0, 0, 0]), MAX_ROTATION_RAD)))
         else:
             _check_keys(source, where, f, {"kind", "module", "offset_m", "rotation_rad"})
             if "module" not in f:
@@ -122,12 +156,12 @@ def parse_scenario(data: dict[str, Any], source: str = "<dict>") -> Scenario:
             borg_faults.append(BorgFault(kind, module=str(f["module"]),
                                          offset_m=_vec3(source, f"{where}.offset_m", f.get("offset_m", [0, 0, 0])),
                                          rotation_rad=_vec3(source, f"{where}.rotation_rad",
-                                                            f.get("rotation_rad", [0, 0, 0]))))
+                                                            f.get("rotation_rad", [0, 0, 0]), MAX_ROTATION_RAD)))
 
     device_faults = []
-    dev = data.get("device", {})
+    dev = _table(source, "device", data.get("device", {}))
     _check_keys(source, "device", dev, {"fault"})
-    for i, f in enumerate(dev.get("fault", [])):
+    for i, f in enumerate(_tables(source, "device.fault", dev.get("fault", []))):
         where = f"device.fault[{i}]"
         _check_keys(source, where, f, {"device", "kind", "after_commands", "count"})
         if not isinstance(f.get("device"), str):
@@ -137,21 +171,25 @@ def parse_scenario(data: dict[str, Any], source: str = "<dict>") -> Scenario:
         after = f.get("after_commands", 0)
         count = f.get("count", 1)
         for key, v in (("after_commands", after), ("count", count)):
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= MAX_FAULT_COMMANDS:
                 raise _err(source, f"{where}.{key}", f"expected a non-negative integer, got {v!r}")
         device_faults.append(DeviceFault(f["device"], f["kind"], after, count))
 
-    truss = data.get("truss", {})
+    truss = _table(source, "truss", data.get("truss", {}))
     _check_keys(source, "truss", truss, {"sigma_length_m", "sigma_measure_m"})
     tn = TrussNoise(
-        sigma_length_m=_number(source, "truss.sigma_length_m", truss.get("sigma_length_m", TrussNoise.sigma_length_m), positive=True),
-        sigma_measure_m=_number(source, "truss.sigma_measure_m", truss.get("sigma_measure_m", TrussNoise.sigma_measure_m), positive=True),
+        sigma_length_m=_number(source, "truss.sigma_length_m", truss.get("sigma_length_m", TrussNoise.sigma_length_m), positive=True,
+                               maximum=MAX_SIGMA_M),
+        sigma_measure_m=_number(source, "truss.sigma_measure_m", truss.get("sigma_measure_m", TrussNoise.sigma_measure_m), positive=True,
+                                maximum=MAX_SIGMA_M),
     )
-    cam = data.get("camera", {})
+    cam = _table(source, "camera", data.get("camera", {}))
     _check_keys(source, "camera", cam, {"pixel_noise", "blur_px"})
     cn = CameraNoise(
-        pixel_noise=_number(source, "camera.pixel_noise", cam.get("pixel_noise", CameraNoise.pixel_noise)),
-        blur_px=_number(source, "camera.blur_px", cam.get("blur_px", CameraNoise.blur_px)),
+        pixel_noise=_number(source, "camera.pixel_noise", cam.get("pixel_noise", CameraNoise.pixel_noise),
+                            minimum=0.0, maximum=MAX_PIXEL_NOISE),
+        blur_px=_number(source, "camera.blur_px", cam.get("blur_px", CameraNoise.blur_px), minimum=0.0,
+                        maximum=MAX_BLUR_PX),
     )
     rig_error = None
     if "rig_error" in data:
@@ -171,4 +209,8 @@ def load_scenario(path: str | Path | None) -> Scenario:
         raise UserError(f"scenario {p}: no such file") from None
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"scenario {p}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError:
+        raise UserError(f"scenario {p}: not a text file (not UTF-8)") from None
+    except OSError as exc:
+        raise UserError(f"scenario {p}: cannot read it: {exc.strerror or exc}") from None
     return parse_scenario(data, str(p))

@@ -188,68 +188,166 @@ def dry_run(procedure: Procedure) -> int:
 
 def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_auto: bool,
         recorder_factory: Callable[[Path], Any], resume: dict[str, Any] | None = None,
-        show_progress: bool = True) -> RunOutcome:
+        show_progress: bool = True, restored: bool = False) -> RunOutcome:
     """Run `procedure` into `run_dir`.  `info` (procedure name, its CLI parameters, rig, scenario)
     is written to run.json so that `lab resume` can rebuild the procedure.  `resume` is a loaded
-    checkpoint: its completed steps are kept and the interrupted one runs again."""
+    checkpoint: its completed steps are kept and the interrupted one runs again (`restored`: the
+    caller has already restored the procedure's state from it, before anything was archived).
+
+    Signals: the first Ctrl-C or SIGTERM aborts the run; from then on (and during every clean-up)
+    further ones are noted and ignored, so any number of them ends exactly like one: every device
+    that moved stopped, the stop record and summary.json written and consistent."""
     from tqdm import tqdm
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    if resume is None:
-        _atomic_write_json(run_dir / RUN_INFO, info)
     steps = procedure.plan()
     start = 0 if resume is None else int(resume["steps_completed"])
-    recorder = recorder_factory(run_dir / RUN_FILE)
-    operator = Operator(operator_auto, recorder)
-    ctx = RunContext(run_dir, recorder, operator, show_progress=show_progress)
+    if start > len(steps):
+        raise UserError(f"{run_dir / CHECKPOINT}: steps_completed {start} is more than the {len(steps)} steps planned")
+    if resume is not None and not restored:
+        restore_state(procedure, resume, steps[:start], run_dir)
+    if resume is None:
+        _atomic_write_json(run_dir / RUN_INFO, info)
+    shield = SignalShield()
+    shield.install()
+    recorder = None
     result, reason, tb = "completed", "", ""
-    # SIGTERM (e.g. a supervisor stopping us) is handled like Ctrl-C: stop devices, close the run.
-    previous_term = signal.getsignal(signal.SIGTERM)
-    if _main_thread():
-        signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    ctx = RunContext(run_dir, None, Operator(operator_auto, None), show_progress=show_progress)
     bar = tqdm(total=len(steps), initial=start, desc=procedure.name, unit="step",
                disable=not show_progress, file=sys.stderr, leave=True)
     try:
-        if resume is not None:
-            procedure.restore(resume["state"], steps[:start], ctx)
-            recorder.log_text("info", f"resumed at step {start} of {len(steps)}")
-        for step in steps[start:]:
-            ctx.step = step
-            bar.set_postfix_str(step.name)
-            ctx.progress = bar.set_postfix_str
-            with recorder.step(step.name, step.index, step.params):
-                procedure.execute(step, ctx)
-            _atomic_write_json(run_dir / CHECKPOINT, {
-                "steps_completed": step.index + 1, "last_step": step.name,
-                "state": procedure.checkpoint(), "time": time.time()})
-            _atomic_write_json(run_dir / SUMMARY, procedure.summary("running", ""))
-            bar.update(1)
-    except KeyboardInterrupt:
-        result, reason = "aborted", f"interrupted by the operator during {ctx.step.name if ctx.step else 'start-up'}"
-        tb = traceback.format_exc()
-    except StopRun as exc:
-        result, reason = "aborted", str(exc)
-    except Exception as exc:  # a device fault or a bug: stop, record, report
-        result, reason = "failed", f"{type(exc).__name__}: {exc}"
-        tb = traceback.format_exc()
-    finally:
-        bar.close()
-        stopped = _stop_all(procedure)
-        if stopped:
-            reason = f"{reason} (stopped: {', '.join(stopped)})" if reason else reason
-        summary = procedure.summary(result, reason)
-        summary.setdefault("result", result)
-        summary.setdefault("reason", reason)
         try:
-            recorder.log_json("summary", summary)
-        except Exception:
-            pass
-        recorder.stop(result, reason, tb)
-        _atomic_write_json(run_dir / SUMMARY, summary)
-        procedure.close()
-        if _main_thread():
-            signal.signal(signal.SIGTERM, previous_term)
+            recorder = recorder_factory(run_dir / RUN_FILE)
+            ctx.recorder = recorder
+            ctx.operator.recorder = recorder
+            if resume is not None:
+                recorder.log_text("info", f"resumed at step {start} of {len(steps)}")
+            for step in steps[start:]:
+                ctx.step = step
+                bar.set_postfix_str(step.name)
+                ctx.progress = bar.set_postfix_str
+                with recorder.step(step.name, step.index, step.params):
+                    procedure.execute(step, ctx)
+                with shield.held():   # a checkpoint is written whole or not at all
+                    _atomic_write_json(run_dir / CHECKPOINT, {
+                        "steps_completed": step.index + 1, "last_step": step.name,
+                        "state": procedure.checkpoint(), "time": time.time()})
+                    _atomic_write_json(run_dir / SUMMARY, procedure.summary("running", ""))
+                bar.update(1)
+        except KeyboardInterrupt:
+            result = "aborted"
+            reason = f"interrupted by the operator during {ctx.step.name if ctx.step else 'start-up'}"
+            if shield.signals:
+                reason = f"{reason} ({shield.describe()})"
+            tb = traceback.format_exc()
+        except StopRun as exc:
+            result, reason = "aborted", str(exc)
+        except Exception as exc:  # a device fault or a bug: stop, record, report
+            result, reason = "failed", f"{type(exc).__name__}: {exc}"
+            tb = traceback.format_exc()
+    finally:
+        shield.cleanup = True   # from here on no signal interrupts: the clean-up must finish
+        try:
+            bar.close()
+            stopped = _stop_all(procedure)
+            if stopped:
+                reason = f"{reason} (stopped: {', '.join(stopped)})" if reason else reason
+            if result == "completed" and recorder is not None:
+                missing = sorted(set(range(len(steps))) - recorder.step_indices_ended)
+                if missing:
+                    result, reason = "failed", (f"the log lacks the records of step(s) {missing[:10]}"
+                                                f"{'...' if len(missing) > 10 else ''}; not calling the run completed")
+            if result == "completed" and shield.signals:
+                reason = f"completed before the interrupt took effect ({shield.describe()})"
+            summary = procedure.summary(result, reason)
+            summary.setdefault("result", result)
+            summary.setdefault("reason", reason)
+            if recorder is not None:
+                try:
+                    recorder.log_json("summary", summary)
+                except Exception:
+                    pass
+                recorder.stop(result, reason, tb)
+            _atomic_write_json(run_dir / SUMMARY, summary)
+            _remove_stale_tmp(run_dir)
+            procedure.close()
+        finally:
+            shield.restore()
     return RunOutcome(result, reason, summary, run_dir)
+
+
+def restore_state(procedure: Procedure, resume: dict[str, Any], steps_done: list[StepSpec], run_dir: Path) -> None:
+    """Rebuild the procedure's state from a checkpoint; a state that does not fit the run is the
+    checkpoint's fault, said in one line, before anything has moved."""
+    try:
+        procedure.restore(resume["state"], steps_done, None)  # type: ignore[arg-type]
+    except LabError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        raise UserError(f"{run_dir / CHECKPOINT}: state does not fit this run ({type(exc).__name__}: {exc}); "
+                        f"refusing to resume from it") from None
+
+
+class SignalShield:
+    """SIGINT and SIGTERM for the length of a run: the first one raises KeyboardInterrupt (abort);
+    any later one, or any during clean-up or inside `held()`, is counted and otherwise ignored."""
+
+    def __init__(self) -> None:
+        self.signals: list[int] = []
+        self.cleanup = False
+        self._held = 0
+        self._pending = False
+        self._raised = False
+        self._previous: dict[int, Any] = {}
+
+    def install(self) -> None:
+        if not _main_thread():
+            return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.getsignal(sig)
+            signal.signal(sig, self._handle)
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous.clear()
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        self.signals.append(signum)
+        if self.cleanup or self._raised:
+            return
+        if self._held:
+            self._pending = True
+            return
+        self._raised = True
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    @contextmanager
+    def held(self) -> Iterator[None]:
+        """Defer a signal until the block is done (then raise it)."""
+        self._held += 1
+        try:
+            yield
+        finally:
+            self._held -= 1
+        if self._pending and not self._held and not self._raised and not self.cleanup:
+            self._pending = False
+            self._raised = True
+            raise KeyboardInterrupt("signal deferred")
+
+    def describe(self) -> str:
+        names = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
+        n = len(self.signals)
+        kinds = sorted({names.get(s, str(s)) for s in self.signals})
+        return f"{n} signal{'s' if n != 1 else ''}: {', '.join(kinds)}"
+
+
+def _remove_stale_tmp(run_dir: Path) -> None:
+    for p in run_dir.glob("*.json.tmp"):
+        try:
+            p.unlink()
+        except OSError:
+            pass
 
 
 def _stop_all(procedure: Procedure) -> list[str]:
@@ -261,10 +359,6 @@ def _stop_all(procedure: Procedure) -> list[str]:
         return []
 
 
-def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
-
-
 def _main_thread() -> bool:
     import threading
 
@@ -272,28 +366,7 @@ def _main_thread() -> bool:
 
 
 def load_resume(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(run.json info, checkpoint) of an interrupted run; a clear error if it can't be resumed."""
-    info_path, ckpt_path = run_dir / RUN_INFO, run_dir / CHECKPOINT
-    if not info_path.exists():
-        raise UserError(f"{run_dir} is not a run directory (no {RUN_INFO})")
-    info = json.loads(info_path.read_text())
-    ckpt = json.loads(ckpt_path.read_text()) if ckpt_path.exists() else {"steps_completed": 0, "state": {}}
-    summary_path = run_dir / SUMMARY
-    if summary_path.exists():
-        if json.loads(summary_path.read_text()).get("result") == "completed":
-            raise UserError(f"{run_dir}: the run completed; nothing to resume")
-    return info, ckpt
+    """(run.json info, checkpoint) of an interrupted run, checked (procedures/resume.py)."""
+    from procedures.resume import load_run
 
-
-def archive_previous_log(run_dir: Path) -> Path | None:
-    """Move the interrupted run's MCAP aside (recovering it if it has no footer), so the resumed
-    run writes a fresh run.mcap that starts with everything the interrupted one completed."""
-    old = run_dir / RUN_FILE
-    if not old.exists():
-        return None
-    k = 1
-    while (run_dir / f"run.part{k}.mcap").exists():
-        k += 1
-    part = run_dir / f"run.part{k}.mcap"
-    os.replace(old, part)
-    return part
+    return load_run(run_dir)

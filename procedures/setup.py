@@ -43,8 +43,11 @@ class Bench:
         if self.devices is None:
             return out
         for name in sorted(self.moved):
+            dev = self.devices[name]
+            if getattr(dev, "moved", True) is False:   # never commanded to move: not ours to stop
+                continue
             try:
-                self.devices[name].stop()
+                dev.stop()
                 out.append(f"{name} stopped")
             except Exception as exc:
                 out.append(f"{name} STOP FAILED ({exc})")
@@ -60,6 +63,20 @@ class Bench:
                 self.sim = None
 
 
+MAX_SPEEDUP = 1000.0
+
+
+def check_speedup(speedup: float | None) -> None:
+    """Simulated devices may run faster than the hardware, within reason: an infinite or huge
+    speed-up makes every timeout zero."""
+    import math
+
+    from lab.errors import UserError
+
+    if speedup is not None and not (math.isfinite(speedup) and 0 < speedup <= MAX_SPEEDUP):
+        raise UserError(f"--speedup must be a number in (0, {MAX_SPEEDUP:g}], got {speedup!r}")
+
+
 def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *, simulate: bool | None = None,
                speedup: float | None = None, only: list[str] | None = None) -> Bench:
     """Load the rig and scenario; start the simulated bench if the rig has a [sim] table (or
@@ -68,6 +85,7 @@ def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *,
 
     rig = load_rig(rig_path)
     scenario = load_scenario(scenario_path)
+    check_speedup(speedup)
     if scenario_path is None and rig.sim is not None:
         scenario = Scenario(seed=rig.sim.seed)
     bench = Bench(rig, scenario)
@@ -78,5 +96,9 @@ def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *,
         bench.sim = start_sim_bench(rig, scenario, speedup=speedup)  # arms the scenario's device faults
         rig = bench.sim.rig
         bench.rig = rig
-    bench.devices = connect(rig, bench.relay, only=only)
+    try:
+        bench.devices = connect(rig, bench.relay, only=only)   # claims every device first (DeviceBusy)
+    except BaseException:
+        bench.close()
+        raise
     return bench

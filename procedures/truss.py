@@ -33,6 +33,7 @@ ESTIMATORS = {"mle": "mle", "ekf": "ekf", "open-loop": "open_loop"}
 CENTRE_EXTENSION = 0.5        # fraction of the stroke the actuator is centred at before attaching
 COARSE_SET_M = 0.015          # how close the operator sets a strut by hand before the IPJR takes over
 _STREAM = 7100                # RNG stream of the simulated operator (per step: [seed, _STREAM, step])
+_STREAM_IPJR = 7200           # RNG stream of the simulated IPJRs' noise (per step: [seed, _STREAM_IPJR, step, k])
 
 
 def load_plan(path: str | Path) -> Plan:
@@ -114,6 +115,9 @@ class TrussProcedure:
     def execute(self, spec: StepSpec, run: RunContext) -> None:
         step = self.plan_obj.steps[spec.index]
         rng = np.random.default_rng([self.bench.scenario.seed, _STREAM, spec.index])
+        if self.bench.simulated:   # the actuators' noise is drawn per step too: a re-run step repeats it
+            for k, name in enumerate(self.ipjr_names):
+                self.bench.sim.world.ipjrs[name].reseed([self.bench.scenario.seed, _STREAM_IPJR, spec.index, k])
         rec = run.recorder
         commanded = np.asarray(self.est.lengths_to_command(step), dtype=float)
         achieved = []
@@ -206,13 +210,25 @@ class TrussProcedure:
 
     # ---- checkpoints -------------------------------------------------------------------------
     def checkpoint(self) -> dict[str, Any]:
-        return {"records": self.records, "truth": np.where(np.isnan(self.truth), None, self.truth).tolist()}
+        state: dict[str, Any] = {"records": self.records,
+                                 "truth": np.where(np.isnan(self.truth), None, self.truth).tolist()}
+        if self.bench.simulated:   # simulation truth, like `truth`: where each actuator's rod is
+            state["sim_extensions_m"] = {n: a.extension_m() for n, a in self.bench.sim.world.ipjrs.items()}
+        return state
 
     def restore(self, state: dict[str, Any], steps_done: list[StepSpec], run: RunContext) -> None:
         """Replay the completed steps into a fresh estimator: same inputs, same estimate."""
         self._new_estimator()
         self.records = list(state.get("records", []))
-        self.truth = np.array([[np.nan if v is None else v for v in row] for row in state["truth"]], dtype=float)
+        if len(self.records) != len(steps_done):
+            raise ValueError(f"{len(self.records)} step records for {len(steps_done)} completed steps")
+        truth = np.array([[np.nan if v is None else v for v in row] for row in state["truth"]], dtype=float)
+        if truth.shape != self.truth.shape:
+            raise ValueError(f"truth has shape {truth.shape}, the truss {self.truth.shape}")
+        self.truth = truth
+        if self.bench.simulated:
+            for name, ext in state.get("sim_extensions_m", {}).items():
+                self.bench.sim.world.ipjrs[name].set_extension(float(ext))
         for spec, rec in zip(steps_done, self.records):
             step = self.plan_obj.steps[spec.index]
             measured = {(int(f), int(i)): float(v) for f, i, v in rec["measured"]}

@@ -71,6 +71,27 @@ class SimBench:
         self.stop()
 
 
+def ephemeral_port_range() -> tuple[int, int]:
+    """The kernel's ephemeral port range (outgoing connections take ports from it, so a server on
+    a fixed port inside it can find the port taken): /proc on Linux, else the IANA range."""
+    try:
+        lo, hi = (int(x) for x in open("/proc/sys/net/ipv4/ip_local_port_range").read().split())
+        return lo, hi
+    except (OSError, ValueError):
+        return 49152, 65535
+
+
+def ports_in_ephemeral_range(rig: Rig) -> list[tuple[str, int]]:
+    """(device, port) of every fixed port of a rig that lies in the ephemeral range."""
+    lo, hi = ephemeral_port_range()
+    out = []
+    for name, _, url in rig.devices():
+        port = urllib.parse.urlsplit(url).port
+        if port is not None and lo <= port <= hi:
+            out.append((name, port))
+    return out
+
+
 def _endpoint(name: str, url: str, ephemeral: bool, http: bool) -> tuple[str, int, str]:
     """(host, port to bind, path) from a device URL of a simulated rig."""
     parts = urllib.parse.urlsplit(url)

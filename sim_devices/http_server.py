@@ -15,13 +15,31 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, Callable
 
 from sim_devices.faults import FaultInjector
-from sim_devices.line_server import E_INTERNAL, E_UNKNOWN, Refuse
+from sim_devices.line_server import E_INTERNAL, E_SYNTAX, E_UNKNOWN, Refuse
 
 Reply = tuple[int, str, bytes, dict[str, str]]
 Route = Callable[[dict[str, str], bool], Reply]   # (query, stuck) -> reply
 
 HTTP_STATUS = {10: 404, 11: 400, 12: 400, 20: 400, 30: 409, 31: 409, 40: 409, 50: 500}
 HUNG_REQUEST_S = 10.0      # how long a `timeout` fault keeps a request open before dropping it
+REQUEST_TIMEOUT_S = 5.0    # a client that does not finish sending its request in this time is dropped
+MAX_CONNECTIONS = 32       # more at once are turned away with 503 (a Pi serves one host, not a crowd)
+MAX_TARGET = 2048          # bytes of path + query
+
+
+def parse_query(query: str) -> dict[str, str]:
+    """The query string as a dict; a malformed or repeated parameter is refused (`steps=5&steps=-1000`
+    must not quietly mean either one)."""
+    try:
+        pairs = urllib.parse.parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query))
+    except ValueError:
+        raise Refuse(E_SYNTAX, f"malformed query {query[:80]!r}") from None
+    out: dict[str, str] = {}
+    for k, v in pairs:
+        if k in out:
+            raise Refuse(E_SYNTAX, f"parameter {k!r} given more than once")
+        out[k] = v
+    return out
 
 
 def json_reply(obj: dict[str, Any], status: int = 200, headers: dict[str, str] | None = None) -> Reply:
@@ -36,6 +54,34 @@ class _Server(ThreadingHTTPServer):
     daemon_threads = True
     block_on_close = False
     allow_reuse_address = True
+    request_queue_size = 64
+
+    def __init__(self, *args: Any, **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self.slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        if not self.slots.acquire(blocking=False):   # every slot busy: refuse at once, hold no thread
+            try:
+                request.sendall(b"HTTP/1.0 503 Service Unavailable\r\nContent-Length: 0\r\n\r\n")
+            except OSError:
+                pass
+            self.shutdown_request(request)
+            return
+        super().process_request(request, client_address)
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        import sys
+
+        if isinstance(sys.exc_info()[1], (ConnectionError, TimeoutError)):
+            return   # the client went away (it timed out, or was killed): not the server's error
+        super().handle_error(request, client_address)
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self.slots.release()
 
 
 class HttpDeviceServer:
@@ -51,13 +97,19 @@ class HttpDeviceServer:
         class Handler(BaseHTTPRequestHandler):
             server_version = "lab-sim/1.0"
             protocol_version = "HTTP/1.0"
+            timeout = REQUEST_TIMEOUT_S     # socket timeout: a half-sent request cannot hold a thread
 
             def log_message(self, fmt: str, *args: Any) -> None:  # quiet: the driver logs comms
                 pass
 
             def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
+                if len(self.path) > MAX_TARGET:
+                    return self._send(error_reply(E_SYNTAX, f"request target longer than {MAX_TARGET} bytes"))
                 parts = urllib.parse.urlsplit(self.path)
-                query = dict(urllib.parse.parse_qsl(parts.query, keep_blank_values=True))
+                try:
+                    query = parse_query(parts.query)
+                except Refuse as r:
+                    return self._send(error_reply(r.code, r.text))
                 fault = outer.faults.on_request(self.path, is_moving(), parts.path in motion_paths)
                 if fault == "timeout":
                     outer._stop.wait(HUNG_REQUEST_S)

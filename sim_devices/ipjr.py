@@ -48,6 +48,20 @@ class IpjrActuator:
         self._lock = threading.Lock()
         self._attach: tuple[float, float] | None = None   # (strut length, extension) at attach
 
+    def reseed(self, seed: object) -> None:
+        """Restart the noise stream (potentiometer noise, move scatter), e.g. from [seed, stream,
+        step, k]: a procedure step re-run after an interruption then draws what it drew the first
+        time, so a resumed truss run equals the uninterrupted one."""
+        with self._lock:
+            self._rng = np.random.default_rng(seed)  # type: ignore[arg-type]
+
+    def set_extension(self, extension_m: float) -> None:
+        """Put the rod where it is (resume of a simulated run: the actuator of a real bench is
+        still where the interrupted run left it; a new simulated bench starts elsewhere)."""
+        if not 0.0 <= float(extension_m) <= self.stroke_m:
+            raise ValueError(f"{self.name}: extension {extension_m} m outside the {self.stroke_m} m stroke")
+        self.axis.set_position(float(extension_m))
+
     # -- truth ------------------------------------------------------------------------------------
     def extension_m(self) -> float:
         return float(self.axis.position())

@@ -23,9 +23,11 @@ from typing import Callable
 from sim_devices.faults import FaultInjector
 
 MAX_LINE = 128
+MAX_CLIENTS = 8          # TCP clients at once (a serial port has one); more are closed at once
 
 E_UNKNOWN, E_SYNTAX, E_TOO_LONG, E_RANGE, E_NOT_HOMED, E_BUSY, E_FAULT, E_INTERNAL = 10, 11, 12, 20, 30, 31, 40, 50
 
+_TAGGED = re.compile(r"^(#\d{1,4}) (.*)$")   # `#17 POS?`: the reply echoes the tag (docs/protocols.md §1)
 _DECIMAL = re.compile(r"^[+-]?(\d+(\.\d*)?|\.\d+)$")
 _INTEGER = re.compile(r"^[+-]?\d+$")
 
@@ -184,6 +186,10 @@ class LineServer:
         if len(raw) + 1 > MAX_LINE:
             return f"ERR {E_TOO_LONG} request longer than {MAX_LINE} bytes\n".encode()
         text = raw.decode("ascii", errors="replace").rstrip("\r")
+        tag = ""
+        m = _TAGGED.match(text)
+        if m:
+            tag, text = m.group(1) + " ", m.group(2)
         if not text.strip():
             return None
         motion = self.device.is_motion(text)
@@ -193,7 +199,7 @@ class LineServer:
         if fault == "disconnect":
             self.device.link_lost()
             return DISCONNECT
-        reply = (self.device.handle(text, stuck=(fault == "stuck")) + "\n").encode("ascii", errors="replace")
+        reply = (tag + self.device.handle(text, stuck=(fault == "stuck")) + "\n").encode("ascii", errors="replace")
         if fault == "garbled":
             return self.faults.garble(reply)
         return reply
@@ -230,6 +236,9 @@ class LineServer:
                 continue
             except OSError:
                 return
+            if len(self._clients) >= MAX_CLIENTS:
+                _close(conn)
+                continue
             conn.settimeout(0.05)
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self._clients.add(conn)

@@ -74,7 +74,7 @@ def test_comms_log_has_every_byte_with_device_and_url():
     with ScriptedLineDevice([(b"ID?\n", b"OK TURNTABLE X 1\n")]) as dev:
         LineTransport("turntable", dev.url, comms).request("ID?")
     wire = [r for r in comms.records if r.direction != "event"]
-    assert [(r.direction, r.data) for r in wire] == [("tx", b"ID?\n"), ("rx", b"OK TURNTABLE X 1\n")]
+    assert [(r.direction, r.data) for r in wire] == [("tx", b"#1 ID?\n"), ("rx", b"#1 OK TURNTABLE X 1\n")]
     assert all(r.device == "turntable" and r.url == dev.url for r in comms.records)
 
     comms = MemoryComms()

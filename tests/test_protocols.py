@@ -74,8 +74,9 @@ def test_turntable_queries_and_stop():
         assert tt.position() == pytest.approx(math.radians(-12.345))
         tt.stop()
     wire = [(d, b) for d, b in comms.exchanged("turntable") if d != "event"]
-    assert wire == [("tx", b"ID?\n"), ("rx", b"OK TURNTABLE LAB-RT1 1.0\n"), ("tx", b"POS?\n"),
-                    ("rx", b"OK -12.345\n"), ("tx", b"STOP\n"), ("rx", b"OK\n")]
+    # every request carries a tag the device echoes (docs/protocols.md §1)
+    assert wire == [("tx", b"#1 ID?\n"), ("rx", b"#1 OK TURNTABLE LAB-RT1 1.0\n"), ("tx", b"#2 POS?\n"),
+                    ("rx", b"#2 OK -12.345\n"), ("tx", b"#3 STOP\n"), ("rx", b"#3 OK\n")]
 
 
 def test_turntable_err_reply_is_a_typed_fault_and_nothing_more_is_sent():
@@ -298,10 +299,10 @@ def test_drivers_send_the_documented_bytes_to_the_simulators(bench):
     tt.stop()
     tt.home()
     tt.move_to(math.radians(30))
-    tx = [r.data for r in comms.records if r.direction == "tx"]
+    tx = [r.data.split(b" ", 1)[1] for r in comms.records if r.direction == "tx"]   # without tags
     assert tx[:4] == [b"STOP\n", b"LIMITS?\n", b"STATUS?\n", b"HOME\n"]
     i = tx.index(b"MOVE 30.000\n")
     assert set(tx[4:i]) == {b"STATUS?\n"}                 # polled until homed
     assert set(tx[i + 1:]) == {b"STATUS?\n"}              # polled until there
-    rx = [r.data for r in comms.records if r.direction == "rx"]
+    rx = [r.data.split(b" ", 1)[1] for r in comms.records if r.direction == "rx"]   # without tags
     assert all(line.startswith(b"OK") and line.endswith(b"\n") for line in rx)

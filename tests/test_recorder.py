@@ -338,9 +338,10 @@ def test_recover_drops_a_torn_tail_and_keeps_the_rest(tmp_path: Path) -> None:
     assert rep.interrupted_step == "3 s3"
     mods = [r.message.module for r in iter_messages(rep.path_out, topics.VERDICTS)]
     assert mods == ["M0", "M1", "M2"]
-    # A file that is already complete is copied as it is, its own stop record kept.
+    # A file that is already complete and intact is left alone: nothing written.
     rep2 = recover(path, tmp_path / "same.mcap")
-    assert rep2.was_complete and rep2.had_stop and rep2.messages == len(list(iter_messages(path)))
+    assert rep2.intact and rep2.was_complete and rep2.had_stop and rep2.steps_completed == 4
+    assert not (tmp_path / "same.mcap").exists()
     notes = tmp_path / "notes.txt"
     notes.write_text("hello")
     with pytest.raises(UserError, match="not an MCAP file"):

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import time
 
 import pytest
 
 import drivers
 from drivers.camera import Camera
-from drivers.errors import (DeviceFault, DeviceTimeout, LengthControlError, MotionIncomplete, ProtocolError)
+from drivers.errors import (DeviceFault, DeviceTimeout, Disconnected, LengthControlError, MotionIncomplete,
+                            ProtocolError)
 from drivers.testing import fast_sim_rig
 from lab.comms import MemoryComms
 from lab.errors import UserError
@@ -39,7 +41,8 @@ def events(comms: MemoryComms) -> str:
 
 
 def tx(comms: MemoryComms, device: str) -> list[bytes]:
-    return [r.data for r in comms.records if r.direction == "tx" and r.device == device]
+    """Requests sent to a device, without their tags (`#7 STOP\n` -> `STOP\n`)."""
+    return [re.sub(rb"^#\d+ ", b"", r.data) for r in comms.records if r.direction == "tx" and r.device == device]
 
 
 class Deadline:
@@ -107,8 +110,10 @@ def test_dropped_connection_mid_move_reconnects_and_reports_where_it_stopped(slo
     with drivers.connect(slow_bench.rig, comms) as d:
         d.turntable.home()
         slow_bench.inject("turntable", "disconnect")        # fires on the first command while moving
-        with Deadline(3), pytest.raises(MotionIncomplete) as err:
+        with Deadline(3), pytest.raises(Disconnected) as err:
             d.turntable.move_to(math.radians(120))
+    # the link loss is named as such, with where the turntable stopped
+    assert "link to socket://" in str(err.value) and "lost during the move" in str(err.value)
     assert "short of the target 120.000 deg" in str(err.value)
     assert "link lost" in events(comms) and events(comms).count("opened") >= 2
     assert not slow_bench.world.turntable.moving()

@@ -119,8 +119,10 @@ def test_turntable_turns_faces_to_the_camera():
 
 
 def test_bad_n_is_refused():
-    with pytest.raises(ValueError, match="N must be an integer >= 2"):
+    with pytest.raises(ValueError, match="N must be an integer from 2 to 8"):
         build_borg(1)
+    with pytest.raises(ValueError, match="N must be an integer from 2 to 8"):
+        build_borg(100)      # a size no turntable carries: refused, not built for minutes
 
 
 def test_cli_json_round_trip():

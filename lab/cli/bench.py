@@ -15,6 +15,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "run": ("procedures.bench_run", "end-to-end simulated procedure runs (BORG, tetrahelix)"),
     "calibration": ("procedures.bench_calibration", "BORG verdicts and accuracy against rig-error size, with and "
                                                     "without rig calibration"),
+    "faults": ("procedures.bench_faults", "the fault campaign: device faults, kills, signals, bad input, abuse"),
 }
 
 

@@ -64,13 +64,19 @@ def _load(rig_path: str | None):
 
 def _sim(args: argparse.Namespace) -> int:
     from lab.scenario import load_scenario
-    from sim_devices.bench import start_sim_bench
+    from procedures.setup import check_speedup
+    from sim_devices.bench import ephemeral_port_range, ports_in_ephemeral_range, start_sim_bench
 
     rig = _load(args.rig)
     if not rig.simulated:
         raise UserError(f"rig {rig.source} has no [sim] table: it describes real hardware, there is nothing to simulate")
-    if args.speedup is not None and not args.speedup > 0:
-        raise UserError(f"--speedup must be positive, got {args.speedup}")
+    check_speedup(args.speedup)
+    risky = ports_in_ephemeral_range(rig)
+    if risky:   # an outgoing connection may hold such a port: "Address already in use", now or later
+        lo, hi = ephemeral_port_range()
+        print(f"lab sim: warning: rig {rig.source}: port{'s' if len(risky) > 1 else ''} "
+              f"{', '.join(f'{p} ({n})' for n, p in risky)} lie in the kernel's ephemeral range {lo}-{hi}; "
+              f"choose ports below {lo}", file=sys.stderr)
     scenario = load_scenario(args.scenario) if args.scenario else None
     try:
         bench = start_sim_bench(rig, scenario, speedup=args.speedup, ephemeral_ports=False,
@@ -186,6 +192,6 @@ def _ik(args: argparse.Namespace) -> int:
         print(json.dumps(out, indent=2))
     else:
         print("pose (m, rad): " + " ".join(f"{v:.6g}" for v in pose))
-        print("legs (m):      " + " ".join(f"{v:.6f}" for v in out["legs_m"]))
+        print("legs (m):      " + " ".join("-" if v is None else f"{v:.6f}" for v in out["legs_m"]))
         print("reachable" if out["reachable"] else f"UNREACHABLE: {out['reason']}")
     return 0  # computed; reachability is in the output

@@ -22,11 +22,21 @@ def _recover(args: argparse.Namespace) -> int:
     from lab.recorder.recover import recover
 
     rep = recover(args.file, args.output, overwrite=args.force)
-    state = "was already complete" if rep.was_complete else f"had no footer ({rep.stop_reason})"
+    if rep.intact:
+        print(f"{args.file} is complete and intact ({rep.steps_completed} steps completed): nothing to recover, "
+              f"no file written")
+        return 0
+    if rep.damaged:
+        state = f"is damaged in {len(rep.damaged)} place{'s' if len(rep.damaged) > 1 else ''} ({'; '.join(rep.damaged)})"
+        if not rep.was_complete:
+            state += f" and has no footer ({rep.stop_reason})"
+    else:
+        state = f"had no footer ({rep.stop_reason})" if not rep.was_complete else "was complete"
     print(f"{args.file} {state}")
     print(f"kept {rep.messages} messages, {rep.steps_completed} steps completed"
           + (f", step {rep.interrupted_step} was interrupted" if rep.interrupted_step else "")
-          + (f"; dropped {rep.dropped_bytes} bytes of an incomplete tail" if rep.dropped_bytes else ""))
+          + (f"; {rep.lost_messages} messages lost with their channel definitions" if rep.lost_messages else "")
+          + (f"; dropped {rep.dropped_bytes} bytes not in any intact record" if rep.dropped_bytes else ""))
     if not rep.had_stop:
         print("the run had no stop record; added one: result failed, recovered")
     print(f"wrote {rep.path_out}")

@@ -55,8 +55,23 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", metavar="DIR", help="run directory (default runs/<procedure>-<time>)")
     p.add_argument("--auto", action="store_true", help="answer operator prompts automatically (simulation)")
     p.add_argument("--dry-run", action="store_true", help="check every planned move against limits; move nothing")
-    p.add_argument("--speedup", type=float, default=None, help="simulated devices move this many times faster")
+    p.add_argument("--speedup", type=_speedup, default=None,
+                   help="simulated devices move this many times faster (0 < S <= 1000)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--replace", action="store_true",
+                   help="--out may hold an earlier run: delete its files and start afresh (refused otherwise)")
+
+
+def _speedup(text: str) -> float:
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(value) and 0 < value <= 1000):
+        raise argparse.ArgumentTypeError(f"must be a number in (0, 1000], got {text!r}")
+    return value
 
 
 def _out_dir(args: argparse.Namespace, procedure: str) -> Path:
@@ -102,46 +117,84 @@ def _build(procedure: str, params: dict[str, Any]):
 
 
 def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = None) -> int:
+    """A new run (resume_dir None) or a resume.  Everything that can refuse — the run directory,
+    its lock, run.json and checkpoint.json, the logs against the checkpoint, the devices' owners —
+    refuses before any device moves and before any file of the run is touched."""
+    import signal
+
+    from lab.locks import set_holder
     from lab.recorder import RunRecorder
+    from procedures import resume as rs
     from procedures import runner
 
-    proc, bench, structure = _build(procedure, params)
-    if params.get("dry_run"):
-        try:
-            return runner.dry_run(proc)
-        finally:
-            proc.close()
+    dry = bool(params.get("dry_run"))
     run_dir = resume_dir or _out_dir(argparse.Namespace(**params), procedure)
-    if resume_dir is None and (run_dir / runner.RUN_FILE).exists():
-        proc.close()
-        from lab.errors import UserError
+    created = not run_dir.exists()
+    lock = None
+    if not dry:
+        lock = rs.lock_run_dir(run_dir) if resume_dir is not None else rs.prepare_out_dir(run_dir, bool(params.get("replace")))
+        set_holder(run=str(run_dir))
+    try:
+        resume_state = None
+        if resume_dir is not None:
+            _, resume_state = rs.load_run(resume_dir)
+        proc, bench, structure = _build(procedure, params)
+        if dry:
+            try:
+                return runner.dry_run(proc)
+            finally:
+                proc.close()
+        plan = None
+        try:
+            if resume_state is not None:
+                steps = proc.plan()
+                done = int(resume_state["steps_completed"])
+                plan = rs.plan_copy(resume_dir, done, len(steps))
+                runner.restore_state(proc, resume_state, steps[:done], resume_dir)
+                old = run_dir / rs.RUN_FILE
+                part = rs.archive_previous_log(resume_dir)
+                if part is not None:
+                    plan.remap(old, part)
+        except BaseException:
+            proc.close()
+            raise
+        info = {"procedure": procedure, "params": params, "structure": structure, "argv": sys.argv}
 
-        raise UserError(f"{run_dir} already holds a run; choose another --out (or `lab resume {run_dir}`)")
-    resume_state = None
-    previous = None
-    if resume_dir is not None:
-        _, resume_state = runner.load_resume(resume_dir)
-        previous = runner.archive_previous_log(resume_dir)
-    info = {"procedure": procedure, "params": params, "structure": structure, "argv": sys.argv}
+        def recorder_factory(path: Path) -> RunRecorder:
+            target = path if plan is None else run_dir / rs.RESUME_FILE
+            rec = RunRecorder(target, procedure, params, rig=bench.rig.data, scenario=bench.scenario.to_dict(),
+                              structure=structure)
+            bench.relay.target = rec.comms_sink
+            rec.log_design(structure, proc.model)
+            if plan is not None:
+                copied = rs.copy_completed_steps(plan, rec)
+                rec.log_text("info", f"resumed: {copied} records of {plan.steps_completed} completed steps kept, from "
+                                     f"{', '.join(sorted({p.path.name for p, _, _ in plan.sources})) or 'no log'}")
+                rs.finish_copy(rec, run_dir)   # only a complete copy is called run.mcap
+            return rec
 
-    def recorder_factory(path: Path) -> RunRecorder:
-        rec = RunRecorder(path, procedure, params, rig=bench.rig.data, scenario=bench.scenario.to_dict(),
-                          structure=structure)
-        bench.relay.target = rec.comms_sink
-        rec.log_design(structure, proc.model)
-        if previous is not None:
-            from procedures.resume import copy_completed_steps
+        outcome = runner.run(proc, run_dir, info=info, operator_auto=bool(params.get("auto")),
+                             recorder_factory=recorder_factory, resume=resume_state,
+                             show_progress=not params.get("quiet"), restored=resume_state is not None)
+        # the run is closed: a late Ctrl-C must not turn its exit code into 130
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        _print_outcome(procedure, outcome)
+        return outcome.exit_code
+    finally:
+        if lock is not None:
+            lock.release()
+            _remove_if_unused(run_dir, created)
 
-            copied = copy_completed_steps(previous, rec, int(resume_state["steps_completed"]))
-            rec.log_text("info", f"resumed from {previous.name}: {copied} records of "
-                                 f"{resume_state['steps_completed']} completed steps kept")
-        return rec
 
-    outcome = runner.run(proc, run_dir, info=info, operator_auto=bool(params.get("auto")),
-                         recorder_factory=recorder_factory, resume=resume_state,
-                         show_progress=not params.get("quiet"))
-    _print_outcome(procedure, outcome)
-    return outcome.exit_code
+def _remove_if_unused(run_dir: Path, created: bool) -> None:
+    """A run refused before it started leaves no directory behind it created."""
+    try:
+        if created and {p.name for p in run_dir.iterdir()} <= {".lock"}:
+            (run_dir / ".lock").unlink(missing_ok=True)
+            run_dir.rmdir()
+    except OSError:
+        pass
 
 
 def _print_outcome(procedure: str, outcome) -> None:
@@ -166,10 +219,10 @@ def _print_outcome(procedure: str, outcome) -> None:
 
 
 def _resume(args: argparse.Namespace) -> int:
-    from procedures import runner
+    from procedures import resume as rs
 
     run_dir = Path(args.run_dir)
-    info, ckpt = runner.load_resume(run_dir)
+    info, ckpt = rs.load_run(run_dir)
     params = dict(info["params"])
     if args.auto:
         params["auto"] = True

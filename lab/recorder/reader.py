@@ -34,14 +34,21 @@ class ScanState:
 
     complete: bool = False        # footer and trailing magic present
     data_end: bool = False        # the data section was closed (writer.finish() ran)
-    valid_bytes: int = 0          # bytes up to the end of the last complete record
+    valid_bytes: int = 0          # bytes in complete, intact records (plus the magic at both ends)
     file_bytes: int = 0
     chunks: int = 0
     stop_reason: str = ""         # why the scan stopped early, "" if it reached the footer
+    damaged: list[str] = field(default_factory=list)   # salvage: what was skipped, and why
+    lost_messages: int = 0        # salvage: messages whose channel definition was lost
 
     @property
     def dropped_bytes(self) -> int:
         return self.file_bytes - self.valid_bytes
+
+    @property
+    def intact(self) -> bool:
+        """Complete, and nothing inside was damaged: there is nothing to recover."""
+        return self.complete and not self.damaged and not self.lost_messages and self.dropped_bytes == 0
 
 
 @dataclass(frozen=True)
@@ -67,50 +74,122 @@ def _open(path: str | os.PathLike[str]) -> io.BufferedReader:
     return f
 
 
-def scan_records(path: str | os.PathLike[str], state: ScanState | None = None
+_KNOWN_OPCODES = {int(o) for o in Opcode}
+
+
+def _decode(opcode: int, body: bytes, length: int) -> list[Any]:
+    stream = ReadDataStream(io.BytesIO(body))
+    if opcode == Opcode.CHUNK:
+        return breakup_chunk(Chunk.read(stream), validate_crc=True)
+    if opcode == Opcode.SCHEMA:
+        return [Schema.read(stream)]
+    if opcode == Opcode.CHANNEL:
+        return [Channel.read(stream)]
+    if opcode == Opcode.MESSAGE:
+        return [Message.read(stream, length)]
+    return []
+
+
+def _summary_definitions(f: io.BufferedReader) -> tuple[dict[int, Schema], dict[int, Channel]]:
+    """Schemas and channels from the summary section of a file whose footer is intact: with them a
+    chunk after a damaged one can be read even if its channels were defined in the damaged one."""
+    try:
+        from mcap.reader import SeekingReader
+
+        f.seek(0)
+        summary = SeekingReader(f, validate_crcs=True).get_summary()
+        if summary is None:
+            return {}, {}
+        return dict(summary.schemas), dict(summary.channels)
+    except Exception:
+        return {}, {}
+    finally:
+        f.seek(MAGIC_SIZE)
+
+
+def _resync(f: io.BufferedReader, start: int, file_bytes: int) -> tuple[int, list[Any]] | None:
+    """The next offset at or after `start` where an intact chunk begins (its CRC checked), with
+    its records; None if there is none."""
+    f.seek(start)
+    data = f.read()
+    pos = 0
+    while True:
+        pos = data.find(bytes([Opcode.CHUNK]), pos)
+        if pos < 0 or pos + 9 > len(data):
+            return None
+        length = struct.unpack_from("<Q", data, pos + 1)[0]
+        if 0 < length <= len(data) - pos - 9:
+            try:
+                records = _decode(Opcode.CHUNK, data[pos + 9: pos + 9 + length], length)
+                return start + pos, records
+            except Exception:
+                pass
+        pos += 1
+
+
+def scan_records(path: str | os.PathLike[str], state: ScanState | None = None, *, salvage: bool = False
                  ) -> Iterator[tuple[Schema | None, Channel, Message]]:
-    """(schema, channel, message) for every complete message in file order; fills `state`."""
+    """(schema, channel, message) for every complete message in file order; fills `state`.
+
+    By default the scan stops at the first incomplete or corrupt record (what a reader of a run in
+    progress wants).  With `salvage` it skips a corrupt record and carries on at the next intact
+    chunk, noting each skip in `state.damaged` (what `lab recover` wants)."""
     st = state if state is not None else ScanState()
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     with _open(path) as f:
         st.file_bytes = os.fstat(f.fileno()).st_size
         st.valid_bytes = MAGIC_SIZE
+        if salvage:
+            schemas, channels = _summary_definitions(f)
         while True:
+            offset = f.tell()
             head = f.read(9)
             if len(head) < 9:
                 st.stop_reason = "file ends without a footer" if not head else "file ends inside a record header"
                 return
             opcode, length = struct.unpack("<BQ", head)
-            if length > st.file_bytes:
-                st.stop_reason = f"record claims {length} bytes, more than the file holds"
-                return
-            body = f.read(length)
-            if len(body) < length:
-                st.stop_reason = f"last record (opcode {opcode:#x}) is cut short"
-                return
-            records: list[Any]
-            try:
-                stream = ReadDataStream(io.BytesIO(body))
-                if opcode == Opcode.CHUNK:
-                    records = breakup_chunk(Chunk.read(stream), validate_crc=True)
-                    st.chunks += 1
-                elif opcode == Opcode.SCHEMA:
-                    records = [Schema.read(stream)]
-                elif opcode == Opcode.CHANNEL:
-                    records = [Channel.read(stream)]
-                elif opcode == Opcode.MESSAGE:
-                    records = [Message.read(stream, length)]
+            problem = ""
+            records: list[Any] = []
+            body = b""
+            if opcode not in _KNOWN_OPCODES and salvage:
+                problem = f"unknown opcode {opcode:#x}"
+            elif length > st.file_bytes:
+                problem = f"record claims {length} bytes, more than the file holds"
+            else:
+                body = f.read(length)
+                if len(body) < length:
+                    st.stop_reason = f"last record (opcode {opcode:#x}) is cut short"
+                    if not salvage:
+                        return
+                    problem = st.stop_reason
                 else:
-                    records = []
-            except (McapError, ValueError, struct.error, EOFError) as exc:
-                st.stop_reason = f"corrupt record (opcode {opcode:#x}): {exc}"
-                return
-            except Exception as exc:  # zstd/lz4 errors on a damaged chunk have their own types
-                st.stop_reason = f"corrupt record (opcode {opcode:#x}): {type(exc).__name__}: {exc}"
-                return
+                    try:
+                        records = _decode(opcode, body, length)
+                    except (McapError, ValueError, struct.error, EOFError) as exc:
+                        problem = f"corrupt record (opcode {opcode:#x}): {exc}"
+                    except Exception as exc:  # zstd/lz4 errors on a damaged chunk have their own types
+                        problem = f"corrupt record (opcode {opcode:#x}): {type(exc).__name__}: {exc}"
+            if problem:
+                if not salvage:
+                    st.stop_reason = problem
+                    return
+                found = _resync(f, offset + 1, st.file_bytes)
+                if found is None:
+                    st.damaged.append(f"bytes {offset}-{st.file_bytes} ({st.file_bytes - offset} bytes): {problem}; "
+                                      f"no intact chunk after it")
+                    st.stop_reason = problem
+                    return
+                nxt, records = found
+                st.damaged.append(f"bytes {offset}-{nxt} ({nxt - offset} bytes): {problem}")
+                f.seek(nxt + 1)
+                length = struct.unpack("<Q", f.read(8))[0]
+                f.seek(nxt + 9 + length)
+                opcode = Opcode.CHUNK
             # A record counts as valid only once decoded; messages of a chunk are yielded after it.
             st.valid_bytes += 9 + length
+            if opcode == Opcode.CHUNK:
+                st.chunks += 1
             for rec in records:
                 if isinstance(rec, Schema):
                     schemas[rec.id] = rec
@@ -119,6 +198,9 @@ def scan_records(path: str | os.PathLike[str], state: ScanState | None = None
                 elif isinstance(rec, Message):
                     channel = channels.get(rec.channel_id)
                     if channel is None:
+                        if salvage:
+                            st.lost_messages += 1
+                            continue
                         st.stop_reason = f"message on unknown channel {rec.channel_id}"
                         return
                     yield schemas.get(channel.schema_id), channel, rec
@@ -126,6 +208,8 @@ def scan_records(path: str | os.PathLike[str], state: ScanState | None = None
                 st.data_end = True
             if opcode == Opcode.FOOTER:
                 st.complete = f.read(MAGIC_SIZE) == MAGIC
+                if st.complete:
+                    st.valid_bytes += MAGIC_SIZE
                 st.stop_reason = "" if st.complete else "footer without trailing magic"
                 return
 

@@ -150,6 +150,7 @@ class RunRecorder:
         self._stopped = False
         self._current: StepInfo | None = None
         self._steps_completed = 0
+        self._ended: set[int] = set()
         self._last_step = ""
         self._t0 = time.time()
         self._last_sync = time.monotonic()
@@ -199,7 +200,7 @@ class RunRecorder:
             if self._current is not None:  # stopped from inside a step (e.g. rec.stop in an except)
                 last = f"{self._current.index} {self._current.name} (unfinished)"
             stop = m.RunStop(stop_time=m.timestamp(now), result=result, reason=reason, traceback=traceback,
-                             steps_completed=self._steps_completed, duration_s=now - self._t0, last_step=last)
+                             steps_completed=len(self._ended), duration_s=now - self._t0, last_step=last)
             try:
                 self._write(topics.RUN_STOP, stop, _ns(now))
                 self._writer.finish()
@@ -253,6 +254,7 @@ class RunRecorder:
                                                  phase="end", params_json=_json(params),
                                                  duration_s=now - info.t0_s), _ns(now))
         self._steps_completed += 1
+        self._ended.add(info.index)
         self._last_step = f"{info.index} {name}"
         self.sync()
 
@@ -388,6 +390,22 @@ class RunRecorder:
         """Re-record a message read from another run file with its original log time (resume
         keeps the completed steps of the interrupted run this way)."""
         self._write(topic, message, int(log_time_ns))
+        if topic == topics.RUN_STEP and isinstance(message, m.StepEvent) and message.phase == "end":
+            self._ended.add(int(message.index))
+
+    @property
+    def step_indices_ended(self) -> set[int]:
+        """Indices of every step whose end record is in this file (copied or recorded): what a run
+        may call `completed` only when it covers the whole plan."""
+        return set(self._ended)
+
+    def rename(self, path: str | os.PathLike[str]) -> None:
+        """Give the open file another name (same directory), atomically; writing continues."""
+        new = Path(path)
+        with self._lock:
+            self.sync()
+            os.replace(self.path, new)
+            self.path = new
 
     def log_text(self, level: str | int, text: str, t_s: float | None = None) -> None:
         """A log line (foxglove.Log on /log); level: debug, info, warning, error, fatal."""

@@ -1,7 +1,10 @@
-"""Rewrite a run file left without its footer (killed writer, power loss) into a complete MCAP.
+"""Rewrite a run file left without its footer (killed writer, power loss) or damaged inside (bad
+sectors, a stray write) into a complete MCAP.
 
-Every complete record is kept: schemas and channels as they were, messages in file order with their
-original times.  A file with no stop record gets one, marked `recovered`, with result "failed" and
+Every intact record is kept: schemas and channels as they were, messages in file order with their
+original times.  A corrupt record does not end the salvage: the scan carries on at the next chunk
+whose CRC checks, so one damaged chunk costs only its own messages.  A file that is complete and
+intact is left alone (nothing is written).  A file with no stop record gets one, marked `recovered`, with result "failed" and
 a reason saying the recording ended without one, so every recovered run still ends in a stop
 record and `steps_completed` tells how far it got."""
 
@@ -27,8 +30,11 @@ class RecoverReport:
     interrupted_step: str    # "index name" of a step started and never ended, "" if none
     had_stop: bool           # the input already had a stop record
     was_complete: bool       # the input already had its footer
-    dropped_bytes: int       # bytes after the last complete record (the cut-off tail)
+    dropped_bytes: int       # bytes not in any intact record (a cut-off tail, damaged chunks)
     stop_reason: str         # why the scan of the input stopped ("" = reached the footer)
+    damaged: tuple[str, ...] = ()   # damaged stretches skipped, with why
+    lost_messages: int = 0          # messages dropped because their channel definition was lost
+    intact: bool = False            # complete and undamaged: nothing was written
 
 
 def default_output(path_in: str | os.PathLike[str]) -> Path:
@@ -42,6 +48,14 @@ def recover(path_in: str | os.PathLike[str], path_out: str | os.PathLike[str] | 
             overwrite: bool = False) -> RecoverReport:
     src = Path(path_in)
     dst = Path(path_out) if path_out is not None else default_output(src)
+    check = ScanState()
+    steps_seen = 0
+    decoders0 = Decoders()
+    for schema, channel, msg in scan_records(src, check, salvage=True):
+        if channel.topic == topics.RUN_STEP and decoders0.decoder(schema, channel)(msg.data).phase == "end":
+            steps_seen += 1
+    if check.intact:
+        return RecoverReport(src, 0, steps_seen, "", True, True, 0, "", (), 0, intact=True)
     if src.resolve() == dst.resolve():
         raise UserError(f"recover writes a new file; output {dst} is the input")
     if dst.exists() and not overwrite:
@@ -58,7 +72,7 @@ def recover(path_in: str | os.PathLike[str], path_out: str | os.PathLike[str] | 
     with open(tmp, "wb") as f:
         writer = McapWriter(f, compression=CompressionType.ZSTD)
         writer.start(profile="", library="lab.recorder.recover")
-        for schema, channel, msg in scan_records(src, state):
+        for schema, channel, msg in scan_records(src, state, salvage=True):
             if schema is not None and schema.id not in schema_map:
                 schema_map[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
             if channel.id not in channel_map:
@@ -100,7 +114,7 @@ def recover(path_in: str | os.PathLike[str], path_out: str | os.PathLike[str] | 
         os.fsync(f.fileno())
     os.replace(tmp, dst)
     return RecoverReport(dst, messages, steps, interrupted, had_stop, state.complete, state.dropped_bytes,
-                         state.stop_reason)
+                         state.stop_reason, tuple(state.damaged), state.lost_messages)
 
 
 def _stop_channel(writer: McapWriter, schema_map: dict[int, int], channel_map: dict[int, int]) -> int:

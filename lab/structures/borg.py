@@ -14,6 +14,8 @@ turntable brings in front of the camera after a further +90 deg turn (2: y = L, 
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Literal
@@ -210,12 +212,15 @@ class _Grid:
         return ids, tuple(sorted(sides))
 
 
+MAX_N = 8   # the largest BORG a lab turntable carries (the rig's borg_n has the same bound)
+
+
 def build_borg(n: int = 3, spacing_m: float = 0.5) -> BorgModel:
     """The design model of an N x N x N BORG truss (N >= 2) on a turntable."""
-    if int(n) != n or n < 2:
-        raise ValueError(f"BORG size N must be an integer >= 2, got {n!r}")
-    if not spacing_m > 0:
-        raise ValueError(f"node spacing must be positive, got {spacing_m!r} m")
+    if int(n) != n or not 2 <= n <= MAX_N:
+        raise ValueError(f"BORG size N must be an integer from 2 to {MAX_N}, got {n!r}")
+    if not (math.isfinite(spacing_m) and 0 < spacing_m <= 10.0):
+        raise ValueError(f"node spacing must be a positive number of metres up to 10, got {spacing_m!r} m")
     n = int(n)
     if n == 3:
         return _build_table1(spacing_m)

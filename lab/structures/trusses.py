@@ -147,9 +147,9 @@ def build_truss(name: str) -> TrussModel:
 
 def tetrahelix(n: int, edge_m: float = 1.0) -> TrussModel:
     """The Boerdijk-Coxeter tower of n nodes with every strut `edge_m` long."""
-    if n < 4:
-        raise ValueError(f"a tetrahelix needs N >= 4 nodes, got {n}")
-    if not (edge_m > 0 and np.isfinite(edge_m)):
+    if not 4 <= n <= 400:
+        raise ValueError(f"a tetrahelix is generated for 4 <= N <= 400 nodes, got {n}")
+    if not (edge_m > 0 and np.isfinite(edge_m) and edge_m <= 100.0):
         raise ValueError(f"edge length must be a positive number of metres, got {edge_m}")
     a = float(edge_m)
     x = np.zeros((n, 3))
