@@ -124,6 +124,7 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
 
     from lab.locks import set_holder
     from lab.recorder import RunRecorder
+    from procedures.console import Console, ConsoleRecorder
     from procedures import resume as rs
     from procedures import runner
 
@@ -159,23 +160,25 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
             proc.close()
             raise
         info = {"procedure": procedure, "params": params, "structure": structure, "argv": sys.argv}
+        console = Console(show_progress=not params.get("quiet"))
 
         def recorder_factory(path: Path) -> RunRecorder:
             target = path if plan is None else run_dir / rs.RESUME_FILE
             rec = RunRecorder(target, procedure, params, rig=bench.rig.data, scenario=bench.scenario.to_dict(),
                               structure=structure)
-            bench.relay.target = rec.comms_sink
+            bench.relay.target = console.comms_tap(rec.comms_sink)   # retries and reconnects printed too
             rec.log_design(structure, proc.model)
             if plan is not None:
                 copied = rs.copy_completed_steps(plan, rec)
                 rec.log_text("info", f"resumed: {copied} records of {plan.steps_completed} completed steps kept, from "
                                      f"{', '.join(sorted({p.path.name for p, _, _ in plan.sources})) or 'no log'}")
                 rs.finish_copy(rec, run_dir)   # only a complete copy is called run.mcap
-            return rec
+            return ConsoleRecorder(rec, console)   # warnings printed as they are logged
 
         outcome = runner.run(proc, run_dir, info=info, operator_auto=bool(params.get("auto")),
                              recorder_factory=recorder_factory, resume=resume_state,
-                             show_progress=not params.get("quiet"), restored=resume_state is not None)
+                             show_progress=not params.get("quiet"), restored=resume_state is not None,
+                             console=console)
         # the run is closed: a late Ctrl-C must not turn its exit code into 130
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -206,6 +209,7 @@ def _print_outcome(procedure: str, outcome) -> None:
         print(format_table(s))
     else:
         nodes = s.get("nodes", [])
+        print(TRUSS_LEGEND)
         print(f"{'node':>5} {'error (mm)':>11} {'estimate error (mm)':>20}")
         for n in nodes:
             e = n.get("error_m")
@@ -216,6 +220,10 @@ def _print_outcome(procedure: str, outcome) -> None:
             print(f"rms node error {rms * 1000:.3f} mm over {s.get('steps')} nodes ({s.get('estimator')})")
     print(f"result: {outcome.result}{' - ' + outcome.reason if outcome.reason else ''}")
     print(f"run: {outcome.run_dir / 'run.mcap'}   summary: {outcome.run_dir / 'summary.json'}")
+
+
+TRUSS_LEGEND = ("error: the built node's distance from its design position; estimate error: the estimator's "
+                "node position vs the built one (both against the simulated truth, blank on hardware)")
 
 
 def _resume(args: argparse.Namespace) -> int:
