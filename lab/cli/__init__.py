@@ -18,6 +18,7 @@ COMMAND_MODULES = [
     "lab.cli.plan",        # lab plan truss
     "lab.cli.bench",       # lab bench slam|mle|...
     "lab.cli.run",         # lab run borg|truss, lab resume, lab calibrate
+    "lab.cli.runs",        # lab runs, lab runs show
     "lab.cli.calibrate",   # lab calibrate camera|board
 ]
 

@@ -75,7 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--angle-step-deg", type=float, default=30.0, metavar="DEG",
                    help="turntable step between survey angles (default 30: the rim tags' spacing; larger is a "
                         "quicker, coarser survey)")
-    r.add_argument("--run-dir", metavar="DIR", help="where the run's MCAP log goes (default runs/calibrate-rig-<time>)")
+    r.add_argument("--run-dir", metavar="DIR", help="where the run's MCAP log goes (default <runs root>/calibrate-rig-<time>, "
+                                                          "the root as for lab run)")
     r.add_argument("--auto", action="store_true", help="answer operator prompts automatically (simulation)")
     r.add_argument("--dry-run", action="store_true", help="check every planned move against limits; move nothing")
     r.add_argument("--speedup", type=float, default=None, help="simulated devices move this many times faster")
@@ -249,7 +250,9 @@ def _rig(args: argparse.Namespace) -> int:
         raise UserError(f"--speedup {args.speedup}: must be a positive factor")
     if not 5.0 <= args.angle_step_deg <= 180.0:
         raise UserError(f"--angle-step-deg {args.angle_step_deg}: must be 5..180 degrees")
-    run_dir = Path(args.run_dir) if args.run_dir else Path("runs") / f"calibrate-rig-{time.strftime('%Y%m%d-%H%M%S')}"
+    from lab.runs import runs_root
+
+    run_dir = Path(args.run_dir) if args.run_dir else runs_root()[0] / f"calibrate-rig-{time.strftime('%Y%m%d-%H%M%S')}"
     if not args.dry_run and (run_dir / runner.RUN_FILE).exists():
         raise UserError(f"--run-dir {run_dir} already holds a run; choose another")
     bench = open_bench(args.rig, args.scenario, speedup=args.speedup, only=None)

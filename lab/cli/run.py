@@ -52,7 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", metavar="FILE", help="rig file (default: the simulated bench, lab/rigs/sim.toml)")
     p.add_argument("--scenario", metavar="FILE", help="simulation scenario: seed, noise, faults (docs/scenarios.md)")
-    p.add_argument("--out", metavar="DIR", help="run directory (default runs/<procedure>-<time>)")
+    p.add_argument("--out", metavar="DIR",
+                   help="run directory (default: <runs root>/<procedure>-<time>; the root is $LAB_RUNS, the user "
+                        "config's runs, else ./runs)")
     p.add_argument("--auto", action="store_true", help="answer operator prompts automatically (simulation)")
     p.add_argument("--dry-run", action="store_true", help="check every planned move against limits; move nothing")
     p.add_argument("--speedup", type=_speedup, default=None,
@@ -75,9 +77,14 @@ def _speedup(text: str) -> float:
 
 
 def _out_dir(args: argparse.Namespace, procedure: str) -> Path:
+    """--out, else a new directory under the runs root ($LAB_RUNS, the user config's `runs`, else
+    ./runs; lab/runs.py), named for the procedure and the time."""
     if args.out:
         return Path(args.out)
-    return Path("runs") / f"{procedure}-{time.strftime('%Y%m%d-%H%M%S')}"
+    from lab.runs import runs_root
+
+    root, _ = runs_root()
+    return root / f"{procedure}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
 def _params(args: argparse.Namespace) -> dict[str, Any]:
@@ -208,18 +215,23 @@ def _print_outcome(procedure: str, outcome) -> None:
 
         print(format_table(s))
     else:
-        nodes = s.get("nodes", [])
-        print(TRUSS_LEGEND)
-        print(f"{'node':>5} {'error (mm)':>11} {'estimate error (mm)':>20}")
-        for n in nodes:
-            e = n.get("error_m")
-            ee = n.get("estimate_error_m")
-            print(f"{n['id']:>5} {'' if e is None else f'{e * 1000:.3f}':>11} {'' if ee is None else f'{ee * 1000:.3f}':>20}")
-        rms = s.get("rms_node_error_m")
-        if rms is not None:
-            print(f"rms node error {rms * 1000:.3f} mm over {s.get('steps')} nodes ({s.get('estimator')})")
+        print(format_truss_table(s))
     print(f"result: {outcome.result}{' - ' + outcome.reason if outcome.reason else ''}")
     print(f"run: {outcome.run_dir / 'run.mcap'}   summary: {outcome.run_dir / 'summary.json'}")
+
+
+def format_truss_table(s: dict[str, Any]) -> str:
+    """The node table printed at the end of `lab run truss` (and by `lab runs show`)."""
+    lines = [TRUSS_LEGEND, f"{'node':>5} {'error (mm)':>11} {'estimate error (mm)':>20}"]
+    for n in s.get("nodes", []):
+        e = n.get("error_m")
+        ee = n.get("estimate_error_m")
+        lines.append(f"{n['id']:>5} {'' if e is None else f'{e * 1000:.3f}':>11} "
+                     f"{'' if ee is None else f'{ee * 1000:.3f}':>20}")
+    rms = s.get("rms_node_error_m")
+    if rms is not None:
+        lines.append(f"rms node error {rms * 1000:.3f} mm over {s.get('steps')} nodes ({s.get('estimator')})")
+    return "\n".join(lines)
 
 
 TRUSS_LEGEND = ("error: the built node's distance from its design position; estimate error: the estimator's "
