@@ -218,6 +218,10 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
         _atomic_write_json(run_dir / RUN_INFO, info)
     shield = SignalShield()
     shield.install()
+    from procedures.pause import PauseAbort, PauseControl, interactive
+
+    pause = PauseControl(shield, interactive(operator_auto), say=console.line)   # first Ctrl-C: pause
+    pause.install()
     recorder = None
     result, reason, tb = "completed", "", ""
     ctx = RunContext(run_dir, None, Operator(operator_auto, None), show_progress=console.bars, console=console)
@@ -243,9 +247,12 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
                         "state": procedure.checkpoint(), "time": time.time()})
                     _atomic_write_json(run_dir / SUMMARY, procedure.summary("running", ""))
                 bar.update(1)
-        except KeyboardInterrupt:
+                if step is not steps[-1]:
+                    pause.at_safe_point(step.name, procedure.stop_devices, ctx.operator, recorder)
+        except KeyboardInterrupt as exc:
             result = "aborted"
-            reason = f"interrupted by the operator during {ctx.step.name if ctx.step else 'start-up'}"
+            reason = (str(exc) if isinstance(exc, PauseAbort) else
+                      f"interrupted by the operator during {ctx.step.name if ctx.step else 'start-up'}")
             if shield.signals:
                 reason = f"{reason} ({shield.describe()})"
             tb = traceback.format_exc()
@@ -281,6 +288,7 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
             _remove_stale_tmp(run_dir)
             procedure.close()
         finally:
+            pause.restore()
             shield.restore()
     return RunOutcome(result, reason, summary, run_dir)
 
