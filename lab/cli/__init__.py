@@ -15,6 +15,7 @@ COMMAND_MODULES = [
     "lab.cli.structure",   # lab structure borg|truss
     "lab.cli.recording",   # lab recover, lab review
     "lab.cli.devices",     # lab sim, lab devices check, lab stewart ik
+    "lab.cli.rig",         # lab rig check
     "lab.cli.plan",        # lab plan truss
     "lab.cli.bench",       # lab bench slam|mle|...
     "lab.cli.run",         # lab run borg|truss, lab resume, lab calibrate
