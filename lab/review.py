@@ -190,11 +190,14 @@ class ReviewReport:
 
 
 class _Review:
-    def __init__(self, rec: Any) -> None:
+    def __init__(self, rec: Any, live: bool = False) -> None:
+        """`live`: messages arrive one by one as the run writes them (lab.live), so the design and
+        the image entities are learnt from the messages instead of from a look at the whole file."""
         import rerun as rr
 
         self.rr = rr
         self.rec = rec
+        self.live = live
         self.tree = FrameTree()
         self.step = -1
         self.start: Any = None
@@ -355,7 +358,9 @@ class _Review:
         elif name == "lab.JsonRecord":
             self.log(f"records/{_safe(msg.kind)}", rr.TextLog(_shorten(msg.json, 4000)))
         elif name == "lab.StructureDesign":
-            pass  # drawn statically in setup()
+            if self.live:   # a review draws it from setup(), before the first message
+                self.design = design_from_message(msg)
+                self.draw_design(self.design)
 
     def on_transform(self, msg: Any) -> None:
         rr = self.rr
@@ -380,6 +385,11 @@ class _Review:
 
     def on_image(self, topic: str, msg: Any) -> None:
         rr = self.rr
+        if self.live and topic not in self.image_entity:
+            # live, the camera's transform may come just after its first image: an image with a
+            # frame goes under that frame, as the review puts it once the run placed the frame
+            self.image_entity[topic] = f"{frame_entity(msg.frame_id)}/image" if msg.frame_id else f"images/{_safe(topic)}"
+            self.path_frames.add(msg.frame_id)
         entity = self.image_entity.get(topic, f"images/{_safe(topic)}")
         cal = self.calib.get(msg.frame_id)
         if cal is not None and entity.startswith("world/"):

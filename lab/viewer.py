@@ -75,26 +75,57 @@ class WebViewer:
         return self.process.poll() is None
 
     def stop(self) -> None:
+        """Stop the server and anything it started (its own process group)."""
+        import signal
+
         if self.process.poll() is None:
-            self.process.terminate()
+            _signal_group(self.process, signal.SIGTERM)
             try:
                 self.process.wait(timeout=5)
             except subprocess.TimeoutExpired:
-                self.process.kill()
+                _signal_group(self.process, signal.SIGKILL)
                 self.process.wait(timeout=5)
+
+
+def _signal_group(proc: subprocess.Popen, sig: int) -> None:
+    try:
+        os.killpg(proc.pid, sig)      # start_new_session: its pid is its group's id
+    except (ProcessLookupError, PermissionError, AttributeError):
+        try:
+            proc.send_signal(sig)
+        except ProcessLookupError:
+            pass
+
+
+def rerun_command() -> list[str]:
+    """The rerun CLI binary itself.  Not `python -m rerun`: that wrapper runs the binary as its own
+    child, and stopping the wrapper would leave the binary (and its ports) behind."""
+    import importlib.util
+    import shutil
+
+    spec = importlib.util.find_spec("rerun_cli")
+    if spec is not None and spec.origin:
+        exe = Path(spec.origin).parent / ("rerun.exe" if sys.platform == "win32" else "rerun")
+        if exe.is_file():
+            return [str(exe)]
+    found = shutil.which("rerun")
+    if found:
+        return [found]
+    raise UserError("the Rerun viewer (the rerun CLI from rerun-sdk) is not installed: pip install rerun-sdk")
 
 
 def start_web_viewer(timeout_s: float = START_TIMEOUT_S) -> WebViewer:
     """Start the web viewer and its gRPC proxy on loopback; return once both ports accept."""
     grpc_port, web_port = free_port(), free_port()
     log = Path(tempfile.mkstemp(prefix="lab-rerun-", suffix=".log")[1])
-    cmd = [sys.executable, "-m", "rerun", "--serve-web", "--bind", LOOPBACK, "--port", str(grpc_port),
+    cmd = [*rerun_command(), "--serve-web", "--bind", LOOPBACK, "--port", str(grpc_port),
            "--web-viewer-port", str(web_port), "--server-memory-limit", PROXY_MEMORY_LIMIT]
     env = dict(os.environ, RERUN_ANALYTICS="false")   # no first-run banner on the operator's terminal
     with open(log, "wb") as out:
-        # its own session: the operator's Ctrl-C is ours to handle (we stop the server ourselves)
+        # its own session: the operator's Ctrl-C is ours to handle (a run pauses on it; we stop the
+        # server ourselves); and on Linux it is told to go when we do, even by SIGKILL
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, env=env,
-                                start_new_session=True)
+                                start_new_session=True, preexec_fn=_die_with_parent)
     viewer = WebViewer(proc, grpc_port, web_port, log)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -107,6 +138,18 @@ def start_web_viewer(timeout_s: float = START_TIMEOUT_S) -> WebViewer:
     viewer.stop()
     raise LabError(f"the Rerun web viewer did not listen on {LOOPBACK}:{web_port} within {timeout_s:.0f} s "
                    f"(its output: {log})")
+
+
+def _die_with_parent() -> None:
+    """In the child before exec: SIGTERM when the parent dies (Linux prctl PR_SET_PDEATHSIG)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        try:
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGTERM))   # 1 = PR_SET_PDEATHSIG
+        except OSError:
+            pass
 
 
 @dataclass

@@ -60,6 +60,10 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speedup", type=_speedup, default=None,
                    help="simulated devices move this many times faster (0 < S <= 1000)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--view", nargs="?", const="auto", metavar="URL",
+                   help="show the run in Rerun as it happens, as `lab review` shows it afterwards: a local viewer "
+                        "where there is a display, else the web viewer on 127.0.0.1 (URL printed); with URL "
+                        "(rerun+http://HOST:PORT/proxy or HOST:PORT) a viewer that is already running")
     p.add_argument("--replace", action="store_true",
                    help="--out may hold an earlier run: delete its files and start afresh (refused otherwise)")
 
@@ -168,12 +172,20 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
             raise
         info = {"procedure": procedure, "params": params, "structure": structure, "argv": sys.argv}
         console = Console(show_progress=not params.get("quiet"))
+        live: list[Any] = []          # the live view, once the recorder exists (--view)
 
         def recorder_factory(path: Path) -> RunRecorder:
             target = path if plan is None else run_dir / rs.RESUME_FILE
             rec = RunRecorder(target, procedure, params, rig=bench.rig.data, scenario=bench.scenario.to_dict(),
                               structure=structure)
             bench.relay.target = console.comms_tap(rec.comms_sink)   # retries and reconnects printed too
+            if params.get("view"):
+                from lab.live import LiveView
+
+                view = LiveView(params["view"], rec.run_id, ["world/camera/image"] if procedure == "borg" else [])
+                rec.add_listener(view.feed)
+                live.append(view)
+                console.line(f"live view: {view.sink.description}")
             rec.log_design(structure, proc.model)
             if plan is not None:
                 copied = rs.copy_completed_steps(plan, rec)
@@ -190,11 +202,33 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         _print_outcome(procedure, outcome)
+        if live:
+            _close_live(live[0], run_dir)
         return outcome.exit_code
     finally:
         if lock is not None:
             lock.release()
             _remove_if_unused(run_dir, created)
+
+
+def _close_live(view: Any, run_dir: Path) -> None:
+    """Finish the live view.  A web viewer stays up for an operator at a terminal until Ctrl-C; a
+    run without a terminal (CI, a script) must end, so there it stops with the run."""
+    import signal
+
+    from lab.viewer import wait_for_interrupt
+
+    rep = view.close(run_dir / "run.mcap")
+    web = rep.sink.web
+    if web is None:
+        return
+    if sys.stdin.isatty():
+        print(f"live view: the web viewer stays up until Ctrl-C: {web.url}", flush=True)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        wait_for_interrupt(web)
+    else:
+        web.stop()
+        print(f"live view: web viewer stopped with the run; `lab review {run_dir / 'run.mcap'}` shows it again")
 
 
 def _remove_if_unused(run_dir: Path, created: bool) -> None:
