@@ -62,13 +62,18 @@ def _review(args: argparse.Namespace) -> int:
     if not Path(args.file).is_file():
         raise UserError(f"{args.file}: no such file")
     rep = review(args.file, args.save, mode=choose_mode(args.save, args.connect, args.web), connect=args.connect)
-    print(f"{rep.path}: {rep.messages} messages, {rep.steps} steps completed, result {rep.result}")
-    print(f"design: {rep.design or 'none (no structure recorded or named in the start record)'}")
-    if rep.scan.stop_reason:
-        print(f"note: the file was cut short ({rep.scan.stop_reason}); showing every complete record")
-    print(f"recording id: {rep.recording_id}")
-    print(rep.sink.description, flush=True)
-    if rep.sink.web is not None:
-        print("Ctrl-C stops the web viewer", flush=True)
-        wait_for_interrupt(rep.sink.web)
+    try:
+        print(f"{rep.path}: {rep.messages} messages, {rep.steps} steps completed, result {rep.result}")
+        print(f"design: {rep.design or 'none (no structure recorded or named in the start record)'}")
+        if rep.scan.stop_reason:
+            print(f"note: the file was cut short ({rep.scan.stop_reason}); showing every complete record")
+        print(f"recording id: {rep.recording_id}")
+        print(rep.sink.description, flush=True)
+        if rep.sink.web is not None:
+            print("Ctrl-C stops the web viewer", flush=True)
+            wait_for_interrupt(rep.sink.web)
+    except KeyboardInterrupt:
+        # Ctrl-C is how a served review ends, whenever it comes once the URL is out
+        if rep.sink.web is not None:
+            rep.sink.web.stop()
     return 0
