@@ -79,7 +79,7 @@ class RunEntry:
     start: str = ""                # ISO 8601, UTC
     start_s: float = 0.0
     duration_s: float | None = None
-    result: str = ""               # completed | aborted | failed | killed | unreadable
+    result: str = ""               # completed | aborted | failed | running | killed | unreadable
     reason: str = ""
     steps_completed: int = 0
     counts: dict[str, int] = field(default_factory=dict)   # verdicts (BORG) or nodes (truss)
@@ -133,17 +133,29 @@ def read_run(run_dir: Path, root: Path | None = None) -> RunEntry:
             rig = json.loads(start.rig_json or "{}")
         except json.JSONDecodeError:
             rig = {}
-        entry.rig = str((rig.get("rig") or {}).get("name", "")) if isinstance(rig, dict) else ""
+        table = rig.get("rig") if isinstance(rig, dict) else None
+        entry.rig = str(table.get("name", "")) if isinstance(table, dict) else ""
     entry.steps_completed = len(ended)
     if stop is not None:
         entry.result, entry.reason = stop.result, stop.reason
         entry.duration_s = float(stop.duration_s)
         entry.steps_completed = max(entry.steps_completed, int(stop.steps_completed))
     else:
-        entry.result = "killed"
-        entry.reason = f"no stop record ({scan.stop_reason or 'cut short'}); `lab recover` or `lab resume` it"
-        if start is not None and last_ns:
-            entry.duration_s = max(0.0, last_ns * 1e-9 - entry.start_s)
+        from lab.locks import read_holder
+
+        holder = read_holder(run_dir / ".lock")   # a run still going holds its directory's lock
+        if holder:
+            entry.result = "running"
+            entry.reason = f"pid {holder.get('pid', '?')} holds the run directory"
+            if start is not None:
+                import time
+
+                entry.duration_s = max(0.0, time.time() - entry.start_s)   # so far
+        else:
+            entry.result = "killed"
+            entry.reason = f"no stop record ({scan.stop_reason or 'cut short'}); `lab recover` or `lab resume` it"
+            if start is not None and last_ns:
+                entry.duration_s = max(0.0, last_ns * 1e-9 - entry.start_s)
     summary = _json_file(run_dir / "summary.json")
     entry.counts = _counts(summary)
     if isinstance(summary, dict) and entry.procedure == "" and isinstance(summary.get("structure"), str):

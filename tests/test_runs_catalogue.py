@@ -78,6 +78,20 @@ def test_the_catalogue_lists_every_run_with_what_it_was(root: Path) -> None:
     assert "killed" in text[3] and text[4].startswith("3 runs under ")
 
 
+def test_a_run_still_going_is_running_not_killed(root: Path, tmp_path: Path) -> None:
+    """A run without a stop record whose directory lock is held (flock) is in progress."""
+    import shutil
+
+    from lab.locks import FileLock
+    from lab.runs import read_run
+
+    going = tmp_path / "going"
+    shutil.copytree(root / "bench" / "borg-killed", going)
+    with FileLock(going / ".lock", "run directory"):
+        assert read_run(going).result == "running"
+    assert read_run(going).result == "killed"
+
+
 def test_show_prints_the_summary_and_the_verdict_table(root: Path) -> None:
     r = _lab(["runs", "show", "borg-short", "--root", str(root)], _env(), root)
     assert r.returncode == 0, r.stderr
