@@ -28,6 +28,7 @@ class LiveReport:
     messages: int
     dropped: int
     sink: viewer.Sink
+    problem: str = ""        # why the end of the live view did not reach the viewer ("" if it did)
 
 
 class LiveView:
@@ -79,10 +80,15 @@ class LiveView:
                 self.view.start = self.view.start.message if self.view.start is not None else None
             except Exception:
                 pass
-        self.rec.reset_time()
-        self.view.info_document(run_file, ScanState())
-        self.rec.flush(timeout_sec=timeout_s)
-        return LiveReport(self.count, self.failed, self.sink)
+        problem = ""
+        try:
+            self.rec.reset_time()
+            self.view.info_document(run_file, ScanState())
+            self.rec.flush(timeout_sec=timeout_s)
+        except Exception as exc:   # the viewer went away (closed window, killed server): the run is still whole
+            problem = f"{type(exc).__name__}: {exc}"
+        self.rec.disconnect()   # before the web viewer may stop: no "connection severed" errors at exit
+        return LiveReport(self.count, self.failed, self.sink, problem)
 
 
 __all__ = ["LiveView", "LiveReport"]

@@ -594,8 +594,9 @@ def review(path: str | Path, save: str | Path | None = None, *, spawn: bool | No
             # now that every entity is known: the same layout without empty plot tabs
             rec.send_blueprint(make_blueprint(sorted(set(view.image_entity.values())), view.entities))
         rec.flush(timeout_sec=60.0)
-        if mode == "save":
-            rec.disconnect()   # closes the file (footer written)
+        # closes the file (footer written); a web viewer's proxy keeps what it received for the
+        # browser, and stopping it later leaves no severed connection for the SDK to complain about
+        rec.disconnect()
     except BaseException:
         if sink.web is not None:
             sink.web.stop()

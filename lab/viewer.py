@@ -184,6 +184,18 @@ def check_connect_url(url: str) -> str:
     return url
 
 
+def check_viewer_answers(url: str) -> str:
+    """A viewer URL that something listens at (checked before a run starts, so a mistyped --view
+    is one line and nothing moves, not a minute of flushing into nothing at the end)."""
+    url = check_connect_url(url)
+    parsed = urllib.parse.urlparse(url)
+    port = parsed.port or (443 if parsed.scheme.endswith("s") else 80)
+    if not _listening(parsed.hostname or LOOPBACK, port):
+        raise UserError(f"--view/--connect {url}: no Rerun viewer answers there (start one with `rerun`, "
+                        f"or leave out the URL)")
+    return url
+
+
 def attach(rec: Any, mode: str, *, blueprint: Any = None, save: str | Path | None = None,
            connect: str | None = None) -> Sink:
     """Point the recording stream `rec` at its sink (before anything is logged, so nothing is lost)."""
@@ -194,7 +206,7 @@ def attach(rec: Any, mode: str, *, blueprint: Any = None, save: str | Path | Non
         rec.save(out, default_blueprint=blueprint)
         return Sink("save", f"wrote {out}")
     if mode == "connect":
-        url = check_connect_url(connect or "")
+        url = check_viewer_answers(connect or "")
         rec.connect_grpc(url, default_blueprint=blueprint)
         return Sink("connect", f"sent to the Rerun viewer at {url}")
     if mode == "web":
@@ -231,4 +243,4 @@ def wait_for_interrupt(viewer: WebViewer) -> None:
 
 
 __all__ = ["has_display", "free_port", "WebViewer", "start_web_viewer", "Sink", "choose_mode", "attach",
-           "check_connect_url", "wait_for_interrupt"]
+           "check_connect_url", "check_viewer_answers", "wait_for_interrupt"]

@@ -80,4 +80,16 @@ def test_without_a_display_the_live_view_serves_the_web_viewer_and_stops_it_with
     web_port = urllib.parse.urlparse(url).port
     grpc_port = urllib.parse.urlparse(urllib.parse.parse_qs(urllib.parse.urlparse(url).query)["url"][0]).port
     assert "web viewer stopped with the run" in r.stdout
+    assert "ERROR" not in r.stderr and "ERROR" not in r.stdout   # the SDK let go before the viewer stopped
     assert not _listening(web_port) and not _listening(grpc_port)   # nothing left behind
+
+
+def test_a_view_url_nothing_answers_at_is_refused_before_the_run(tmp_path: Path) -> None:
+    port = free_port()
+    r = subprocess.run(LAB + SHORT_BORG + ["--view", f"127.0.0.1:{port}", "--out", str(tmp_path / "run")], env=_env(),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip().splitlines() == [f"lab: error: --view/--connect rerun+http://127.0.0.1:{port}/proxy: "
+                                             f"no Rerun viewer answers there (start one with `rerun`, or leave out "
+                                             f"the URL)"]
+    assert not (tmp_path / "run").exists()

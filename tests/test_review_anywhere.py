@@ -9,15 +9,17 @@ import signal
 import subprocess
 import sys
 import time
+import urllib.parse
 import urllib.request
+import warnings
 from pathlib import Path
 
 import pytest
 from rerun.chunk import RrdReader
 
 from lab.cli import main as lab_main
-from lab.review import review
-from lab.viewer import check_connect_url, choose_mode, has_display
+from lab.review import review, rrd_entity_paths
+from lab.viewer import check_connect_url, choose_mode, has_display, rerun_command
 from test_review import _write_run
 
 LAB = [sys.executable, "-m", "lab"]
@@ -65,8 +67,31 @@ def test_without_a_display_review_serves_the_web_viewer_on_loopback_and_stops_on
         assert url.startswith("http://127.0.0.1:") and "proxy" in url
         with urllib.request.urlopen(url, timeout=20) as resp:   # the web viewer's page is really served
             assert resp.status == 200 and b"<html" in resp.read(4096).lower()
+        # and so is the run: what a browser would get from the proxy, saved by a rerun client
+        grpc_url = urllib.parse.parse_qs(urllib.parse.urlparse(url).query)["url"][0]
+        got = tmp_path / "from_proxy.rrd"
+        review(run, tmp_path / "direct.rrd")
+        want = rrd_entity_paths(tmp_path / "direct.rrd")
+        client = subprocess.Popen([*rerun_command(), "--bind", "127.0.0.1", "--connect", grpc_url, "--save", str(got)],
+                                  env=_headless_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        have: set[str] = set()
+        try:   # the client saves for as long as the proxy serves: wait for the whole run, then stop it
+            deadline = time.monotonic() + 60
+            while have != want and time.monotonic() < deadline:
+                time.sleep(0.5)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")     # a streamed .rrd has no footer yet
+                    try:
+                        have = rrd_entity_paths(got)
+                    except Exception:
+                        pass
+        finally:
+            client.send_signal(signal.SIGINT)
+            client.wait(timeout=30)
+        assert have == want
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=30) == 0
+        assert "ERROR" not in proc.stderr.read()      # no severed-connection complaints at exit
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -140,6 +140,10 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
     from procedures import runner
 
     dry = bool(params.get("dry_run"))
+    if params.get("view") not in (None, "auto") and not dry:
+        from lab.viewer import check_viewer_answers
+
+        check_viewer_answers(params["view"])      # a URL nothing answers at: one line, before anything
     run_dir = resume_dir or _out_dir(argparse.Namespace(**params), procedure)
     created = not run_dir.exists()
     lock = None
@@ -219,6 +223,9 @@ def _close_live(view: Any, run_dir: Path) -> None:
     from lab.viewer import wait_for_interrupt
 
     rep = view.close(run_dir / "run.mcap")
+    if rep.problem:
+        print(f"warning: live view: the viewer stopped receiving ({rep.problem}); the run is complete in "
+              f"{run_dir / 'run.mcap'}: `lab review` it")
     web = rep.sink.web
     if web is None:
         return
