@@ -46,6 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     r = sub.add_parser("resume", help="resume an interrupted run: re-run the interrupted step, keep everything before")
     r.add_argument("run_dir", metavar="RUN_DIR")
     r.add_argument("--auto", action="store_true", help="answer operator prompts automatically (simulation)")
+    r.add_argument("--view", nargs="?", const="auto", metavar="URL",
+                   help="show the resumed run in Rerun as it happens (as for lab run; the original run's --view "
+                        "is not reused: its viewer may be long gone)")
     r.set_defaults(func=_resume)
 
 
@@ -287,6 +290,7 @@ def _resume(args: argparse.Namespace) -> int:
     params = dict(info["params"])
     if args.auto:
         params["auto"] = True
+    params["view"] = args.view
     print(f"resuming {info['procedure']} in {run_dir} at step {ckpt['steps_completed']}"
           f" ({ckpt.get('last_step', 'none')} was the last completed)")
     return _execute(info["procedure"], params, resume_dir=run_dir)
