@@ -185,14 +185,19 @@ class ReviewReport:
     design: str               # what was drawn: "borg:3 (lab.structures)", or "" if none
     entities: list[str]
     scan: ScanState
+    recording_id: str = ""
+    sink: Any = None          # lab.viewer.Sink: where the recording went
 
 
 class _Review:
-    def __init__(self, rec: Any) -> None:
+    def __init__(self, rec: Any, live: bool = False) -> None:
+        """`live`: messages arrive one by one as the run writes them (lab.live), so the design and
+        the image entities are learnt from the messages instead of from a look at the whole file."""
         import rerun as rr
 
         self.rr = rr
         self.rec = rec
+        self.live = live
         self.tree = FrameTree()
         self.step = -1
         self.start: Any = None
@@ -217,17 +222,19 @@ class _Review:
             self.rec.set_time("step", sequence=self.step)
 
     # -- static scene
+    def draw_static(self) -> None:
+        self.log("world", self.rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        if self.design is not None:
+            self.draw_design(self.design)
+
     def setup(self, messages: list[RecordedMessage], path: Path) -> None:
-        rr = self.rr
-        self.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        """Read what the scene needs before anything is logged: the design and the image entities."""
         recorded = [r.message for r in messages if r.topic == topics.STRUCTURE]
         self.start = next((r.message for r in messages if r.topic == topics.RUN_START), None)
         if recorded:
             self.design = design_from_message(recorded[-1])
         else:
             self.design = design_from_spec(structure_spec(self.start))
-        if self.design is not None:
-            self.draw_design(self.design)
         # Images go under their camera frame when the run placed that frame; else a 2D entity.
         tf_children = {r.message.child_frame_id for r in messages if r.topic == topics.TF}
         for r in messages:
@@ -351,7 +358,9 @@ class _Review:
         elif name == "lab.JsonRecord":
             self.log(f"records/{_safe(msg.kind)}", rr.TextLog(_shorten(msg.json, 4000)))
         elif name == "lab.StructureDesign":
-            pass  # drawn statically in setup()
+            if self.live:   # a review draws it from setup(), before the first message
+                self.design = design_from_message(msg)
+                self.draw_design(self.design)
 
     def on_transform(self, msg: Any) -> None:
         rr = self.rr
@@ -376,6 +385,11 @@ class _Review:
 
     def on_image(self, topic: str, msg: Any) -> None:
         rr = self.rr
+        if self.live and topic not in self.image_entity:
+            # live, the camera's transform may come just after its first image: an image with a
+            # frame goes under that frame, as the review puts it once the run placed the frame
+            self.image_entity[topic] = f"{frame_entity(msg.frame_id)}/image" if msg.frame_id else f"images/{_safe(topic)}"
+            self.path_frames.add(msg.frame_id)
         entity = self.image_entity.get(topic, f"images/{_safe(topic)}")
         cal = self.calib.get(msg.frame_id)
         if cal is not None and entity.startswith("world/"):
@@ -493,33 +507,104 @@ def _iso(t_s: float) -> str:
     return dt.datetime.fromtimestamp(t_s, tz=dt.timezone.utc).isoformat(timespec="seconds")
 
 
-def review(path: str | Path, save: str | Path | None = None, *, spawn: bool | None = None) -> ReviewReport:
-    """Log the run at `path` into Rerun.  With `save`, write an .rrd and start no viewer; without,
-    spawn a viewer (unless spawn=False, then nothing is sent anywhere: for tests of the mapping)."""
+APPLICATION_ID = "lab_review"
+
+# Plot groups of the saved layout: (tab name, origin, contents).  Per-tag curves stay in the store
+# (the selection panel finds them) but the default tabs show summaries, not 151 lines at once.
+PLOT_GROUPS = [
+    ("tag error (mm)", "plots/tag_error_mm", ["+ $origin/max", "+ $origin/mean"]),
+    ("verdict position error (mm)", "plots/verdict_position_error_mm", ["+ $origin/**"]),
+    ("verdict rotation error (deg)", "plots/verdict_rotation_error_deg", ["+ $origin/**"]),
+    ("reprojection error (px)", "plots/reprojection_error_px", ["+ $origin/**"]),
+    ("strut length error (mm)", "plots/length_error_mm", ["+ $origin/**"]),
+    ("metrics", "plots", ["+ $origin/**", "- plots/tag_error_mm/**", "- plots/verdict_position_error_mm/**",
+                          "- plots/verdict_rotation_error_deg/**", "- plots/reprojection_error_px/**",
+                          "- plots/length_error_mm/**"]),
+]
+
+
+def recording_id(start: Any, path: Path) -> str:
+    """One recording id per run: the run's own id from its start record (so two runs opened in one
+    viewer stay apart, and a run reviewed twice replaces itself), else one from the file's path."""
+    if start is not None and getattr(start, "run_id", ""):
+        return f"lab-run-{start.run_id}"
+    import hashlib
+
+    return "lab-file-" + hashlib.sha1(str(Path(path).resolve()).encode()).hexdigest()[:12]
+
+
+def make_blueprint(image_entities: list[str], entities: set[str] | None = None) -> Any:
+    """The layout a run opens with: the 3D structure on the left; on the right the camera image with
+    its detections, the verdicts as they came (on the step timeline), and tabs of grouped plots;
+    steps, log, operator and the run's info document in tabs below.  `entities`: what was logged,
+    to leave out plot tabs with nothing in them (None: keep every tab, e.g. for a live run)."""
+    import rerun.blueprint as rrb
+
+    def present(origin: str) -> bool:
+        return entities is None or any(e == origin or e.startswith(origin + "/") for e in entities)
+
+    plots = [rrb.TimeSeriesView(name=name, origin=origin, contents=contents)
+             for name, origin, contents in PLOT_GROUPS if present(origin)]
+    right: list[Any] = [rrb.Spatial2DView(name="camera", origin=e) for e in image_entities[:1]]
+    right.append(rrb.TextLogView(name="verdicts", origin="verdicts"))
+    if plots:
+        right.append(rrb.Tabs(*plots))
+    logs = rrb.Tabs(rrb.TextLogView(name="steps", origin="steps"), rrb.TextLogView(name="log", origin="log"),
+                    rrb.TextLogView(name="operator", origin="operator"),
+                    rrb.TextDocumentView(name="run", origin="run/info"))
+    scene = rrb.Spatial3DView(name="structure", origin="world")
+    return rrb.Blueprint(rrb.Vertical(rrb.Horizontal(scene, rrb.Vertical(*right), column_shares=[3, 2]), logs,
+                                      row_shares=[4, 1]),
+                         collapse_panels=False)
+
+
+def review(path: str | Path, save: str | Path | None = None, *, spawn: bool | None = None,
+           mode: str | None = None, connect: str | None = None) -> ReviewReport:
+    """Log the run at `path` into Rerun.  `mode` (lab.viewer.choose_mode): "save" writes `save` as an
+    .rrd, "spawn" a local viewer, "web" the web viewer on loopback (the report's `sink.web` is then
+    running: the caller keeps it up and stops it), "connect" a running viewer at `connect`, "none"
+    nothing (tests of the mapping).  Default: "save" with `save`, else a local viewer where there is
+    a display and the web viewer where there is none (spawn=False: "none")."""
     import rerun as rr
+
+    from lab import viewer
 
     src = Path(path)
     scan = ScanState()
     messages = list(iter_messages(src, state=scan))
     if not messages:
         raise UserError(f"{src} holds no complete message ({scan.stop_reason})")
-    rec = rr.RecordingStream("lab_review", recording_id=f"review-{src.stem}")
-    if save is not None:
-        out = Path(save)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        rec.save(out)
-    elif spawn is None or spawn:
-        rec.spawn()
+    if mode is None:
+        mode = "none" if spawn is False and save is None else viewer.choose_mode(save, connect, False)
+    start = next((r.message for r in messages if r.topic == topics.RUN_START), None)
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id(start, src))
     view = _Review(rec)
-    with rec:
-        view.setup(messages, src)
-        for r in messages:
-            view.handle(r)
-        rec.reset_time()
-        view.info_document(src, scan)
+    view.setup(messages, src)
+    # the image entities are known before anything is logged, and the plot groups by name: the
+    # layout goes to the sink first, so a viewer shows the run laid out from its first message
+    sink = viewer.attach(rec, mode, blueprint=make_blueprint(sorted(set(view.image_entity.values()))), save=save,
+                         connect=connect)
+    try:
+        with rec:
+            view.draw_static()
+            for r in messages:
+                view.handle(r)
+            rec.reset_time()
+            view.info_document(src, scan)
+            # now that every entity is known: the same layout without empty plot tabs
+            rec.send_blueprint(make_blueprint(sorted(set(view.image_entity.values())), view.entities))
+        rec.flush(timeout_sec=60.0)
+        # closes the file (footer written); a web viewer's proxy keeps what it received for the
+        # browser, and stopping it later leaves no severed connection for the SDK to complain about
+        rec.disconnect()
+    except BaseException:
+        if sink.web is not None:
+            sink.web.stop()
+        raise
     design = f"{view.design.name} ({view.design.source})" if view.design is not None else ""
     result = view.stop.result if view.stop is not None else "unknown (no stop record)"
-    return ReviewReport(src, len(messages), view.steps_done, result, design, sorted(view.entities), scan)
+    return ReviewReport(src, len(messages), view.steps_done, result, design, sorted(view.entities), scan,
+                        rec.get_recording_id() or "", sink)
 
 
 def rrd_entity_paths(path: str | Path) -> set[str]:
@@ -529,5 +614,5 @@ def rrd_entity_paths(path: str | Path) -> set[str]:
     return {chunk.entity_path for chunk in RrdReader(Path(path)).stream()}
 
 
-__all__ = ["review", "ReviewReport", "Design", "DesignTag", "design_from_spec", "design_from_message",
+__all__ = ["review", "make_blueprint", "recording_id", "ReviewReport", "Design", "DesignTag", "design_from_spec", "design_from_message",
            "structure_spec", "FrameTree", "frame_entity", "rrd_entity_paths"]

@@ -331,8 +331,32 @@ class BorgProcedure:
             rotation_error_rad=r.rotation_error_rad if r.rotation_error_rad is not None else float("nan"),
             step_index=index, tag_ids=list(self.model.module_by_name[r.name].tags),
             rejected_tag_ids=sorted(self.measure.rejected_tags)))
-        run.recorder.log_text("warning" if r.verdict == "flagged" else "info",
-                              f"module {r.name}: {r.verdict}{' - ' + r.reason if r.reason else ''}")
+        run.recorder.log_text("info", f"module {r.name}: {r.verdict}{' - ' + r.reason if r.reason else ''}")
+        # the console: the verdict row as soon as it is decided (the header before the first),
+        # then what changed with it: tags rejected in this step, a re-measure
+        from procedures.console import console_of
+
+        console = console_of(run)
+        if not getattr(self, "_row_header_shown", False):
+            console.line(TABLE_HEADER)
+            self._row_header_shown = True
+        if r.attempts > 1:
+            console.warn(f"module {r.name} re-deployed by the operator; measured again (attempt {r.attempts})")
+        console.line(format_row(self._row(r)))
+        new = sorted(self.measure.rejected_tags - getattr(self, "_rejected_reported", set()))
+        if new:
+            console.warn(f"tag{'s' if len(new) > 1 else ''} {', '.join(map(str, new))} rejected as displaced "
+                         f"(does not fit the design while the rest of the structure does)")
+        self._rejected_reported = set(self.measure.rejected_tags)
+
+    def _row(self, r: ModuleResult) -> dict[str, Any]:
+        """A module's line of the summary (and of the table)."""
+        tol = self.measure.tolerances.of(self.model.module_by_name[r.name].kind)
+        return {"name": r.name, "verdict": r.verdict, "reason": r.reason,
+                "position_error_m": r.position_error_m, "rotation_error_rad": r.rotation_error_rad,
+                "deviation_m": r.deviation_m, "deviation_rad": r.deviation_rad,
+                "sigma_position_m": r.sigma_position_m, "tolerance_m": tol.position_m,
+                "tolerance_rad": tol.rotation_rad, "tags_seen": r.tags_seen, "attempts": r.attempts}
 
     def _truth_errors(self, r: ModuleResult) -> None:
         est = self.measure.module_estimate(r.name)
@@ -387,11 +411,7 @@ class BorgProcedure:
             r = self.results.get(mod.name)
             if r is None:
                 continue
-            modules.append({"name": r.name, "verdict": r.verdict, "reason": r.reason,
-                            "position_error_m": r.position_error_m, "rotation_error_rad": r.rotation_error_rad,
-                            "deviation_m": r.deviation_m, "deviation_rad": r.deviation_rad,
-                            "sigma_position_m": r.sigma_position_m, "tags_seen": r.tags_seen,
-                            "attempts": r.attempts})
+            modules.append(self._row(r))
         return {"result": result, "reason": reason, "structure": f"borg:{self.model.n}", "on_flag": self.on_flag,
                 "calibration": ("none (rig file trusted)" if self.uncalibrated else
                                 "survey" if self.rig_survey else "file" if self.rig_calibration is not None
@@ -409,17 +429,34 @@ class BorgProcedure:
         self.bench.close()
 
 
+TABLE_HEADER = (f"{'module':<7} {'verdict':<10} {'dev mm':>7} {'dev deg':>7} {'tol mm/deg':>10} {'1σ mm':>6} "
+                f"{'err mm':>7} {'err deg':>7}  reason")
+TABLE_LEGEND = ("dev: measured distance from the design, which the verdict judges (flagged beyond tol + 2σ, or not "
+                "fully deployed); tol: tolerance; 1σ: estimated position uncertainty; err: estimate vs the simulated "
+                "truth (blank on hardware)")
+
+
+def _num(value: float | None, scale: float, digits: int) -> str:
+    return "" if value is None else f"{value * scale:.{digits}f}"
+
+
+def format_row(mod: dict[str, Any]) -> str:
+    """One module's row: deviation from the design (mm, deg), tolerance, 1 sigma, truth error."""
+    tol = ""
+    if mod.get("tolerance_m") is not None and mod.get("tolerance_rad") is not None:
+        tol = f"{mod['tolerance_m'] * 1000:g}/{np.degrees(mod['tolerance_rad']):g}"
+    return (f"{mod['name']:<7} {mod['verdict']:<10} {_num(mod.get('deviation_m'), 1000, 2):>7} "
+            f"{_num(mod.get('deviation_rad'), 180 / np.pi, 3):>7} {tol:>10} "
+            f"{_num(mod.get('sigma_position_m'), 1000, 2):>6} {_num(mod.get('position_error_m'), 1000, 2):>7} "
+            f"{_num(mod.get('rotation_error_rad'), 180 / np.pi, 3):>7}  {mod.get('reason', '')}").rstrip()
+
+
 def format_table(summary: dict[str, Any]) -> str:
-    """The verification table printed at the end of `lab run borg`."""
-    lines = [f"{'module':<7} {'verdict':<10} {'error (mm)':>10} {'error (deg)':>11} {'dev (mm)':>9}  reason"]
-    for mod in summary.get("modules", []):
-        e = mod.get("position_error_m")
-        r = mod.get("rotation_error_rad")
-        d = mod.get("deviation_m")
-        lines.append(f"{mod['name']:<7} {mod['verdict']:<10} {'' if e is None else f'{e * 1000:.2f}':>10} "
-                     f"{'' if r is None else f'{np.degrees(r):.3f}':>11} {'' if d is None else f'{d * 1000:.2f}':>9}  "
-                     f"{mod.get('reason', '')}")
+    """The verification table printed at the end of `lab run borg` (and by `lab runs show`)."""
+    lines = [TABLE_HEADER]
+    lines += [format_row(mod) for mod in summary.get("modules", [])]
     counts = {v: sum(1 for mm in summary.get("modules", []) if mm["verdict"] == v) for v in ("ok", "flagged", "unverified")}
     lines.append(f"{counts['ok']} ok, {counts['flagged']} flagged, {counts['unverified']} unverified; "
                  f"rejected tags: {summary.get('rejected_tags', [])}")
+    lines.append(TABLE_LEGEND)
     return "\n".join(lines)

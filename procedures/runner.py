@@ -123,6 +123,7 @@ class RunContext:
     step: StepSpec | None = None
     progress: Callable[[str], None] = lambda text: None
     show_progress: bool = True
+    console: Any = None         # procedures.console.Console: lines and warnings for the operator
 
     @contextmanager
     def move(self, description: str) -> Iterator[Callable[[float], None]]:
@@ -188,7 +189,7 @@ def dry_run(procedure: Procedure) -> int:
 
 def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_auto: bool,
         recorder_factory: Callable[[Path], Any], resume: dict[str, Any] | None = None,
-        show_progress: bool = True, restored: bool = False) -> RunOutcome:
+        show_progress: bool = True, restored: bool = False, console: Any = None) -> RunOutcome:
     """Run `procedure` into `run_dir`.  `info` (procedure name, its CLI parameters, rig, scenario)
     is written to run.json so that `lab resume` can rebuild the procedure.  `resume` is a loaded
     checkpoint: its completed steps are kept and the interrupted one runs again (`restored`: the
@@ -196,8 +197,15 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
 
     Signals: the first Ctrl-C or SIGTERM aborts the run; from then on (and during every clean-up)
     further ones are noted and ignored, so any number of them ends exactly like one: every device
-    that moved stopped, the stop record and summary.json written and consistent."""
+    that moved stopped, the stop record and summary.json written and consistent.
+
+    `console` (procedures.console.Console): progress bars only on a terminal, else one plain line
+    per step; default: one built from `show_progress`."""
     from tqdm import tqdm
+
+    from procedures.console import Console
+
+    console = console if console is not None else Console(show_progress)
 
     run_dir.mkdir(parents=True, exist_ok=True)
     steps = procedure.plan()
@@ -210,11 +218,15 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
         _atomic_write_json(run_dir / RUN_INFO, info)
     shield = SignalShield()
     shield.install()
+    from procedures.pause import PauseAbort, PauseControl, interactive
+
+    pause = PauseControl(shield, interactive(operator_auto), say=console.line)   # first Ctrl-C: pause
+    pause.install()
     recorder = None
     result, reason, tb = "completed", "", ""
-    ctx = RunContext(run_dir, None, Operator(operator_auto, None), show_progress=show_progress)
+    ctx = RunContext(run_dir, None, Operator(operator_auto, None), show_progress=console.bars, console=console)
     bar = tqdm(total=len(steps), initial=start, desc=procedure.name, unit="step",
-               disable=not show_progress, file=sys.stderr, leave=True)
+               disable=not console.bars, file=sys.stderr, leave=True)
     try:
         try:
             recorder = recorder_factory(run_dir / RUN_FILE)
@@ -224,6 +236,7 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
                 recorder.log_text("info", f"resumed at step {start} of {len(steps)}")
             for step in steps[start:]:
                 ctx.step = step
+                console.step(step.index, len(steps), step.name)
                 bar.set_postfix_str(step.name)
                 ctx.progress = bar.set_postfix_str
                 with recorder.step(step.name, step.index, step.params):
@@ -234,9 +247,12 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
                         "state": procedure.checkpoint(), "time": time.time()})
                     _atomic_write_json(run_dir / SUMMARY, procedure.summary("running", ""))
                 bar.update(1)
-        except KeyboardInterrupt:
+                if step is not steps[-1]:
+                    pause.at_safe_point(step.name, procedure.stop_devices, ctx.operator, recorder)
+        except KeyboardInterrupt as exc:
             result = "aborted"
-            reason = f"interrupted by the operator during {ctx.step.name if ctx.step else 'start-up'}"
+            reason = (str(exc) if isinstance(exc, PauseAbort) else
+                      f"interrupted by the operator during {ctx.step.name if ctx.step else 'start-up'}")
             tb = traceback.format_exc()
         except StopRun as exc:
             result, reason = "aborted", str(exc)
@@ -272,6 +288,7 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
             _remove_stale_tmp(run_dir)
             procedure.close()
         finally:
+            pause.restore()
             shield.restore()
     return RunOutcome(result, reason, summary, run_dir)
 

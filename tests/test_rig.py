@@ -124,13 +124,16 @@ def test_with_urls_rewrites_only_the_named_devices():
         rig.with_urls({"laser": "x"})
 
 
-def test_the_hardware_template_is_a_valid_rig_apart_from_its_calibration_file():
+def test_the_hardware_template_is_a_valid_rig_before_any_calibration_exists():
+    """First day on hardware (issue 12): the template loads as shipped; it names no calibration file
+    that does not exist yet, and naming one that does not exist is still refused."""
     path = default_rig_path().parent / "hardware_example.toml"
-    with pytest.raises(RigError, match=r"\[camera\].calibration: no such file"):
-        load_rig(path)
+    rig = load_rig(path)
+    assert rig.camera.calibration is None and rig.calibration.file is None
     data = tomllib.loads(path.read_text())
-    data["camera"].pop("calibration")
-    rig = parse_rig(data, str(path))
+    data["camera"]["calibration"] = "camera_calibration.json"
+    with pytest.raises(RigError, match=r"\[camera\].calibration: no such file"):
+        parse_rig(data, str(path), base_dir=path.parent)
     assert not rig.simulated and rig.ipjrs["ipjr3"].link.url == "/dev/ttyACM0"
     legs = np.linalg.norm(rig.stewart.geometry.home_m + rig.stewart.geometry.platform_joints_m
                           - rig.stewart.geometry.base_joints_m, axis=1)

@@ -75,7 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--angle-step-deg", type=float, default=30.0, metavar="DEG",
                    help="turntable step between survey angles (default 30: the rim tags' spacing; larger is a "
                         "quicker, coarser survey)")
-    r.add_argument("--run-dir", metavar="DIR", help="where the run's MCAP log goes (default runs/calibrate-rig-<time>)")
+    r.add_argument("--run-dir", metavar="DIR", help="where the run's MCAP log goes (default <runs root>/calibrate-rig-<time>, "
+                                                          "the root as for lab run)")
     r.add_argument("--auto", action="store_true", help="answer operator prompts automatically (simulation)")
     r.add_argument("--dry-run", action="store_true", help="check every planned move against limits; move nothing")
     r.add_argument("--speedup", type=float, default=None, help="simulated devices move this many times faster")
@@ -249,7 +250,9 @@ def _rig(args: argparse.Namespace) -> int:
         raise UserError(f"--speedup {args.speedup}: must be a positive factor")
     if not 5.0 <= args.angle_step_deg <= 180.0:
         raise UserError(f"--angle-step-deg {args.angle_step_deg}: must be 5..180 degrees")
-    run_dir = Path(args.run_dir) if args.run_dir else Path("runs") / f"calibrate-rig-{time.strftime('%Y%m%d-%H%M%S')}"
+    from lab.runs import runs_root
+
+    run_dir = Path(args.run_dir) if args.run_dir else runs_root()[0] / f"calibrate-rig-{time.strftime('%Y%m%d-%H%M%S')}"
     if not args.dry_run and (run_dir / runner.RUN_FILE).exists():
         raise UserError(f"--run-dir {run_dir} already holds a run; choose another")
     bench = open_bench(args.rig, args.scenario, speedup=args.speedup, only=None)
@@ -345,6 +348,18 @@ def _rig_calibration_hint(rig: Any, out: Path) -> str:
 
 # ---- lab calibrate board ----------------------------------------------------------------------
 
+ISO_A_MM = [("A4", 297.0, 210.0), ("A3", 420.0, 297.0), ("A2", 594.0, 420.0), ("A1", 841.0, 594.0),
+            ("A0", 1189.0, 841.0)]
+
+
+def _iso_sheet(w_mm: float, h_mm: float) -> tuple[str, float, float] | None:
+    """The smallest ISO A sheet, landscape, that holds a w x h mm page (None: larger than A0)."""
+    w, h = max(w_mm, h_mm), min(w_mm, h_mm)
+    for name, sw, sh in ISO_A_MM:
+        if w <= sw + 1e-6 and h <= sh + 1e-6:
+            return name, sw, sh
+    return None
+
 
 def _board(args: argparse.Namespace) -> int:
     import cv2
@@ -371,7 +386,17 @@ def _board(args: argparse.Namespace) -> int:
     scale = caption_px / 2.0 / 22.0
     cv2.putText(img, text, (m, img.shape[0] - m - caption_px // 3), cv2.FONT_HERSHEY_SIMPLEX, scale, 0,
                 max(1, round(scale * 1.5)), cv2.LINE_AA)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    # The page is a real paper size: the board centred on the smallest ISO A sheet (landscape) that
+    # holds it with its margins. A page cut to the board (290 x 206 mm for the default, called "A4")
+    # is not a size a printer knows; dialogs then scale it "to fit" and the print is off scale.
+    sheet = _iso_sheet(img.shape[1] / px_per_mm, img.shape[0] / px_per_mm)
+    if sheet is not None:
+        name, sw, sh = sheet
+        pad_w, pad_h = round(sw * px_per_mm) - img.shape[1], round(sh * px_per_mm) - img.shape[0]
+        img = cv2.copyMakeBorder(img, pad_h // 2, pad_h - pad_h // 2, pad_w // 2, pad_w - pad_w // 2,
+                                 cv2.BORDER_CONSTANT, value=255)
+    if out.parent != Path("") and not out.parent.is_dir():
+        raise UserError(f"--out {out}: no such directory {out.parent}")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -380,9 +405,8 @@ def _board(args: argparse.Namespace) -> int:
     # imsave stores the resolution (PNG pHYs) or sizes the page (PDF) so the print comes out to scale.
     matplotlib.image.imsave(out, np.asarray(img), cmap="gray", vmin=0, vmax=255, dpi=args.dpi)
     page_w, page_h = img.shape[1] / px_per_mm, img.shape[0] / px_per_mm
+    paper = f"{sheet[0]} landscape" if sheet is not None else "larger than A0"
     print(f"wrote {out}: board {board.text()}, {w_mm:.0f} x {h_mm:.0f} mm of squares, page {page_w:.0f} x "
-          f"{page_h:.0f} mm at {args.dpi} dpi")
-    if max(page_w, page_h) > 297 or min(page_w, page_h) > 210:
-        print("note: larger than A4; print on a larger sheet or choose smaller squares")
+          f"{page_h:.0f} mm ({paper}) at {args.dpi} dpi; print at 100 % (actual size) on {paper.split()[0]}")
     print(f"check after printing: {board.cols} squares must span {w_mm:.1f} mm; glue it flat on a rigid board")
     return 0

@@ -12,9 +12,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--force", action="store_true", help="overwrite the output file if it exists")
     r.set_defaults(func=_recover)
 
-    v = sub.add_parser("review", help="open a run in Rerun: design structure, tag poses, camera path, plots")
+    v = sub.add_parser("review", help="open a run in Rerun: design structure, tag poses, camera path, plots",
+                       description="Open a run in Rerun, laid out to read: the 3D structure, the camera image with "
+                                   "its detections, the verdicts and grouped plots. With a display a local viewer "
+                                   "opens; without one (DISPLAY and WAYLAND_DISPLAY unset) the web viewer is served "
+                                   "on 127.0.0.1 and its URL printed, until Ctrl-C.")
     v.add_argument("file", help="the run's .mcap file (a file cut short by a kill works too)")
-    v.add_argument("--save", metavar="RRD", help="write an .rrd file instead of starting a viewer")
+    where = v.add_mutually_exclusive_group()
+    where.add_argument("--save", metavar="RRD", help="write an .rrd file instead of starting a viewer")
+    where.add_argument("--web", action="store_true",
+                       help="serve the web viewer on 127.0.0.1 even where there is a display")
+    where.add_argument("--connect", metavar="URL",
+                       help="send to a viewer that is already running (rerun+http://HOST:PORT/proxy or HOST:PORT)")
     v.set_defaults(func=_review)
 
 
@@ -44,12 +53,27 @@ def _recover(args: argparse.Namespace) -> int:
 
 
 def _review(args: argparse.Namespace) -> int:
-    from lab.review import review
+    from pathlib import Path
 
-    rep = review(args.file, args.save)
-    print(f"{rep.path}: {rep.messages} messages, {rep.steps} steps completed, result {rep.result}")
-    print(f"design: {rep.design or 'none (no structure recorded or named in the start record)'}")
-    if rep.scan.stop_reason:
-        print(f"note: the file was cut short ({rep.scan.stop_reason}); showing every complete record")
-    print(f"wrote {args.save}" if args.save else "sent to the Rerun viewer")
+    from lab.errors import UserError
+    from lab.review import review
+    from lab.viewer import choose_mode, wait_for_interrupt
+
+    if not Path(args.file).is_file():
+        raise UserError(f"{args.file}: no such file")
+    rep = review(args.file, args.save, mode=choose_mode(args.save, args.connect, args.web), connect=args.connect)
+    try:
+        print(f"{rep.path}: {rep.messages} messages, {rep.steps} steps completed, result {rep.result}")
+        print(f"design: {rep.design or 'none (no structure recorded or named in the start record)'}")
+        if rep.scan.stop_reason:
+            print(f"note: the file was cut short ({rep.scan.stop_reason}); showing every complete record")
+        print(f"recording id: {rep.recording_id}")
+        print(rep.sink.description, flush=True)
+        if rep.sink.web is not None:
+            print("Ctrl-C stops the web viewer", flush=True)
+            wait_for_interrupt(rep.sink.web)
+    except KeyboardInterrupt:
+        # Ctrl-C is how a served review ends, whenever it comes once the URL is out
+        if rep.sink.web is not None:
+            rep.sink.web.stop()
     return 0

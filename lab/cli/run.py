@@ -46,18 +46,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     r = sub.add_parser("resume", help="resume an interrupted run: re-run the interrupted step, keep everything before")
     r.add_argument("run_dir", metavar="RUN_DIR")
     r.add_argument("--auto", action="store_true", help="answer operator prompts automatically (simulation)")
+    r.add_argument("--view", nargs="?", const="auto", metavar="URL",
+                   help="show the resumed run in Rerun as it happens (as for lab run; the original run's --view "
+                        "is not reused: its viewer may be long gone)")
     r.set_defaults(func=_resume)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", metavar="FILE", help="rig file (default: the simulated bench, lab/rigs/sim.toml)")
     p.add_argument("--scenario", metavar="FILE", help="simulation scenario: seed, noise, faults (docs/scenarios.md)")
-    p.add_argument("--out", metavar="DIR", help="run directory (default runs/<procedure>-<time>)")
+    p.add_argument("--out", metavar="DIR",
+                   help="run directory (default: <runs root>/<procedure>-<time>; the root is $LAB_RUNS, the user "
+                        "config's runs, else ./runs)")
     p.add_argument("--auto", action="store_true", help="answer operator prompts automatically (simulation)")
     p.add_argument("--dry-run", action="store_true", help="check every planned move against limits; move nothing")
     p.add_argument("--speedup", type=_speedup, default=None,
                    help="simulated devices move this many times faster (0 < S <= 1000)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--view", nargs="?", const="auto", metavar="URL",
+                   help="show the run in Rerun as it happens, as `lab review` shows it afterwards: a local viewer "
+                        "where there is a display, else the web viewer on 127.0.0.1 (URL printed); with URL "
+                        "(rerun+http://HOST:PORT/proxy or HOST:PORT) a viewer that is already running")
     p.add_argument("--replace", action="store_true",
                    help="--out may hold an earlier run: delete its files and start afresh (refused otherwise)")
 
@@ -75,9 +84,14 @@ def _speedup(text: str) -> float:
 
 
 def _out_dir(args: argparse.Namespace, procedure: str) -> Path:
+    """--out, else a new directory under the runs root ($LAB_RUNS, the user config's `runs`, else
+    ./runs; lab/runs.py), named for the procedure and the time."""
     if args.out:
         return Path(args.out)
-    return Path("runs") / f"{procedure}-{time.strftime('%Y%m%d-%H%M%S')}"
+    from lab.runs import runs_root
+
+    root, _ = runs_root()
+    return root / f"{procedure}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
 def _params(args: argparse.Namespace) -> dict[str, Any]:
@@ -124,10 +138,15 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
 
     from lab.locks import set_holder
     from lab.recorder import RunRecorder
+    from procedures.console import Console, ConsoleRecorder
     from procedures import resume as rs
     from procedures import runner
 
     dry = bool(params.get("dry_run"))
+    if params.get("view") not in (None, "auto") and not dry:
+        from lab.viewer import check_viewer_answers
+
+        check_viewer_answers(params["view"])      # a URL nothing answers at: one line, before anything
     run_dir = resume_dir or _out_dir(argparse.Namespace(**params), procedure)
     created = not run_dir.exists()
     lock = None
@@ -159,32 +178,67 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
             proc.close()
             raise
         info = {"procedure": procedure, "params": params, "structure": structure, "argv": sys.argv}
+        console = Console(show_progress=not params.get("quiet"))
+        live: list[Any] = []          # the live view, once the recorder exists (--view)
 
         def recorder_factory(path: Path) -> RunRecorder:
             target = path if plan is None else run_dir / rs.RESUME_FILE
             rec = RunRecorder(target, procedure, params, rig=bench.rig.data, scenario=bench.scenario.to_dict(),
                               structure=structure)
-            bench.relay.target = rec.comms_sink
+            bench.relay.target = console.comms_tap(rec.comms_sink)   # retries and reconnects printed too
+            if params.get("view"):
+                from lab.live import LiveView
+
+                view = LiveView(params["view"], rec.run_id, ["world/camera/image"] if procedure == "borg" else [])
+                rec.add_listener(view.feed)
+                live.append(view)
+                console.line(f"live view: {view.sink.description}")
             rec.log_design(structure, proc.model)
             if plan is not None:
                 copied = rs.copy_completed_steps(plan, rec)
                 rec.log_text("info", f"resumed: {copied} records of {plan.steps_completed} completed steps kept, from "
                                      f"{', '.join(sorted({p.path.name for p, _, _ in plan.sources})) or 'no log'}")
                 rs.finish_copy(rec, run_dir)   # only a complete copy is called run.mcap
-            return rec
+            return ConsoleRecorder(rec, console)   # warnings printed as they are logged
 
         outcome = runner.run(proc, run_dir, info=info, operator_auto=bool(params.get("auto")),
                              recorder_factory=recorder_factory, resume=resume_state,
-                             show_progress=not params.get("quiet"), restored=resume_state is not None)
+                             show_progress=not params.get("quiet"), restored=resume_state is not None,
+                             console=console)
         # the run is closed: a late Ctrl-C must not turn its exit code into 130
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         _print_outcome(procedure, outcome)
+        if live:
+            _close_live(live[0], run_dir)
         return outcome.exit_code
     finally:
         if lock is not None:
             lock.release()
             _remove_if_unused(run_dir, created)
+
+
+def _close_live(view: Any, run_dir: Path) -> None:
+    """Finish the live view.  A web viewer stays up for an operator at a terminal until Ctrl-C; a
+    run without a terminal (CI, a script) must end, so there it stops with the run."""
+    import signal
+
+    from lab.viewer import wait_for_interrupt
+
+    rep = view.close(run_dir / "run.mcap")
+    if rep.problem:
+        print(f"warning: live view: the viewer stopped receiving ({rep.problem}); the run is complete in "
+              f"{run_dir / 'run.mcap'}: `lab review` it")
+    web = rep.sink.web
+    if web is None:
+        return
+    if sys.stdin.isatty():
+        print(f"live view: the web viewer stays up until Ctrl-C: {web.url}", flush=True)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        wait_for_interrupt(web)
+    else:
+        web.stop()
+        print(f"live view: web viewer stopped with the run; `lab review {run_dir / 'run.mcap'}` shows it again")
 
 
 def _remove_if_unused(run_dir: Path, created: bool) -> None:
@@ -205,17 +259,27 @@ def _print_outcome(procedure: str, outcome) -> None:
 
         print(format_table(s))
     else:
-        nodes = s.get("nodes", [])
-        print(f"{'node':>5} {'error (mm)':>11} {'estimate error (mm)':>20}")
-        for n in nodes:
-            e = n.get("error_m")
-            ee = n.get("estimate_error_m")
-            print(f"{n['id']:>5} {'' if e is None else f'{e * 1000:.3f}':>11} {'' if ee is None else f'{ee * 1000:.3f}':>20}")
-        rms = s.get("rms_node_error_m")
-        if rms is not None:
-            print(f"rms node error {rms * 1000:.3f} mm over {s.get('steps')} nodes ({s.get('estimator')})")
+        print(format_truss_table(s))
     print(f"result: {outcome.result}{' - ' + outcome.reason if outcome.reason else ''}")
     print(f"run: {outcome.run_dir / 'run.mcap'}   summary: {outcome.run_dir / 'summary.json'}")
+
+
+def format_truss_table(s: dict[str, Any]) -> str:
+    """The node table printed at the end of `lab run truss` (and by `lab runs show`)."""
+    lines = [TRUSS_LEGEND, f"{'node':>5} {'error (mm)':>11} {'estimate error (mm)':>20}"]
+    for n in s.get("nodes", []):
+        e = n.get("error_m")
+        ee = n.get("estimate_error_m")
+        lines.append(f"{n['id']:>5} {'' if e is None else f'{e * 1000:.3f}':>11} "
+                     f"{'' if ee is None else f'{ee * 1000:.3f}':>20}")
+    rms = s.get("rms_node_error_m")
+    if rms is not None:
+        lines.append(f"rms node error {rms * 1000:.3f} mm over {s.get('steps')} nodes ({s.get('estimator')})")
+    return "\n".join(lines)
+
+
+TRUSS_LEGEND = ("error: the built node's distance from its design position; estimate error: the estimator's "
+                "node position vs the built one (both against the simulated truth, blank on hardware)")
 
 
 def _resume(args: argparse.Namespace) -> int:
@@ -231,6 +295,7 @@ def _resume(args: argparse.Namespace) -> int:
     params = dict(info["params"])
     if args.auto:
         params["auto"] = True
+    params["view"] = args.view
     print(f"resuming {info['procedure']} in {run_dir} at step {ckpt['steps_completed']}"
           f" ({ckpt.get('last_step', 'none')} was the last completed)")
     return _execute(info["procedure"], params, resume_dir=run_dir)

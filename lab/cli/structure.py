@@ -33,9 +33,17 @@ def _borg(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     if args.plot:
+        from pathlib import Path
+
         from lab.structures.borg_plot import plot_borg
 
-        plot_borg(model, args.plot)
+        target = Path(args.plot)
+        if not target.parent.is_dir():
+            raise UserError(f"--plot {target}: no such directory {target.parent}")
+        try:
+            plot_borg(model, target)
+        except OSError as exc:
+            raise UserError(f"--plot {target}: cannot write it: {exc.strerror or exc}") from None
     if args.json:
         print(json.dumps(to_json(model), indent=1))
         return 0

@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
@@ -156,6 +156,7 @@ class RunRecorder:
         self._last_sync = time.monotonic()
         self.dropped_after_stop = 0
         self.stop_record: Any = None
+        self._listeners: list[Callable[[str, ProtoMessage, int], None]] = []   # add_listener (live view)
 
         sha, dirty = git_state()
         start = m.RunStart(
@@ -466,6 +467,12 @@ class RunRecorder:
         self._channels[topic] = (channel_id, type_name)
         return channel_id
 
+    def add_listener(self, fn: Callable[[str, ProtoMessage, int], None]) -> None:
+        """Call `fn(topic, message, log_time_ns)` after each message is written (the live view of
+        `lab run --view`).  A listener must be quick (queue the message, no more); one that raises is
+        dropped and the run goes on: a viewer never breaks a recording."""
+        self._listeners.append(fn)
+
     def _write(self, topic: str, message: ProtoMessage, log_ns: int) -> None:
         if not topic.startswith("/"):
             raise ValueError(f"topics start with '/', got {topic!r}")
@@ -477,3 +484,8 @@ class RunRecorder:
             self._writer.add_message(channel_id=channel_id, log_time=log_ns, data=data, publish_time=log_ns)
             if time.monotonic() - self._last_sync > self._sync_interval_s:
                 self.sync()
+        for fn in list(self._listeners):
+            try:
+                fn(topic, message, log_ns)
+            except Exception:
+                self._listeners.remove(fn)

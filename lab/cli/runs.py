@@ -1,0 +1,92 @@
+"""`lab runs [--root DIR] [--json]` and `lab runs show RUN`: the catalogue of past runs (lab/runs.py)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("runs", help="list past runs (id, procedure, rig, start, duration, result, counts)",
+                       description="List the runs under the runs root, read from their own files. The root: "
+                                   "--root, else $LAB_RUNS, else `runs = \"DIR\"` in ~/.config/lab/config.toml "
+                                   "($LAB_CONFIG), else ./runs.")
+    _common(p)
+    p.set_defaults(func=_list)
+    rsub = p.add_subparsers(dest="runs_command", metavar="show")
+    s = rsub.add_parser("show", help="a run's summary and its verdict (or node) table")
+    s.add_argument("run", metavar="RUN", help="a run id from `lab runs`, a run directory or its run.mcap")
+    _common(s)
+    s.set_defaults(func=_show)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--root", metavar="DIR", default=argparse.SUPPRESS,
+                   help="runs root (default: $LAB_RUNS, the user config's runs, else ./runs)")
+    p.add_argument("--json", action="store_true", default=argparse.SUPPRESS, help="machine-readable output")
+
+
+def _root(args: argparse.Namespace):
+    from pathlib import Path
+
+    from lab.runs import runs_root
+
+    return Path(args.root) if getattr(args, "root", None) else runs_root()[0]
+
+
+def _list(args: argparse.Namespace) -> int:
+    from lab.runs import format_list, list_runs
+
+    root = _root(args)
+    entries = list_runs(root)
+    if getattr(args, "json", False):
+        print(json.dumps({"root": str(root), "runs": [e.to_json() for e in entries]}, indent=1))
+        return 0
+    if not entries:
+        print(f"no runs under {root}")
+        return 0
+    print(format_list(entries))
+    print(f"{len(entries)} run{'s' if len(entries) != 1 else ''} under {root}; `lab runs show ID` for one")
+    return 0
+
+
+def _show(args: argparse.Namespace) -> int:
+    from lab.runs import format_duration, read_run, resolve_run
+
+    root = _root(args)
+    run_dir = resolve_run(args.run, root)
+    entry = read_run(run_dir, root)
+    summary = _summary(run_dir)
+    if getattr(args, "json", False):
+        print(json.dumps({"run": entry.to_json(), "summary": summary}, indent=1))
+        return 0
+    print(f"run {entry.id}  ({run_dir})")
+    print(f"procedure {entry.procedure or '?'}  structure {entry.structure or '?'}  rig {entry.rig or '?'}")
+    print(f"started {entry.start or '?'}  duration {format_duration(entry.duration_s)}  "
+          f"steps completed {entry.steps_completed}")
+    print(f"result {entry.result}{' - ' + entry.reason if entry.reason else ''}")
+    if entry.argv:
+        print("command: lab " + " ".join(entry.argv[1:]))
+    if summary is None:
+        print("no summary.json (the run stopped before its first step ended)")
+        return 0
+    print()
+    if isinstance(summary.get("modules"), list):
+        from procedures.borg import format_table
+
+        print(format_table(summary))
+    elif isinstance(summary.get("nodes"), list):
+        from lab.cli.run import format_truss_table
+
+        print(format_truss_table(summary))
+    else:
+        print(json.dumps({k: v for k, v in summary.items() if k not in ("result", "reason")}, indent=1)[:4000])
+    return 0
+
+
+def _summary(run_dir):
+    try:
+        value = json.loads((run_dir / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return value if isinstance(value, dict) else None

@@ -1,0 +1,88 @@
+"""The small things of issue 12: --version, a help text that is not cut mid-sentence, suggestions for
+mistyped commands, choices and flags, one-line errors for a bad --plot path and for end of input at
+a prompt, and a calibration board page that is a real A4 sheet."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from lab.cli import DESCRIPTION, build_parser, main as lab_main
+from test_calibrate import _rig_file, _SnapshotCamera
+
+LAB = [sys.executable, "-m", "lab"]
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _one_line_error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
+    with pytest.raises(SystemExit) as e:
+        lab_main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        lab_main(["--version"])
+    assert e.value.code == 0
+    assert re.fullmatch(r"lab \(truss-lab\) \d+\.\d+\.\d+.*", capsys.readouterr().out.strip())
+
+
+def test_help_says_whole_sentences() -> None:
+    text = build_parser().format_help()
+    assert DESCRIPTION.endswith(".") and " ".join(DESCRIPTION.split()) in " ".join(text.split())
+    assert "exposes" not in text     # the old description was the docstring's first line, cut mid-sentence
+
+
+@pytest.mark.parametrize("argv,prog,hint", [
+    (["reveiw", "x.mcap"], "lab", "did you mean 'review'?"),
+    (["run", "brog"], "lab run", "did you mean 'borg'?"),
+    (["run", "borg", "--atuo"], "lab run borg", "did you mean --auto?"),
+    (["run", "borg", "--on-flag", "contine"], "lab run borg", "did you mean 'continue'?"),
+    (["structure", "borg", "--jsno"], "lab structure borg", "did you mean --json?"),
+])
+def test_a_mistyped_command_choice_or_flag_gets_a_suggestion_in_one_line(capsys, argv, prog, hint) -> None:
+    line = _one_line_error(capsys, argv)
+    assert line.startswith(f"{prog}: error: ") and hint in line and f"see `{prog} --help`" in line
+
+
+def test_a_plot_into_a_missing_directory_is_one_line(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    assert lab_main(["structure", "borg", "--n", "2", "--plot", str(tmp_path / "nodir" / "x.png")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"lab: error: --plot {tmp_path / 'nodir' / 'x.png'}: no such directory {tmp_path / 'nodir'}"]
+
+
+def test_end_of_input_at_a_calibration_prompt_is_one_line(tmp_path: Path) -> None:
+    blank = cv2.imencode(".png", np.full((720, 1280, 3), 110, np.uint8))[1].tobytes()
+    cam = _SnapshotCamera([blank])
+    try:
+        rig = _rig_file(tmp_path, cam.url)
+        env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        r = subprocess.run(LAB + ["calibrate", "camera", "--rig", str(rig), "--out", str(tmp_path / "c.json")],
+                           stdin=subprocess.DEVNULL, capture_output=True, text=True, env=env, timeout=120)
+    finally:
+        cam.close()
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines() == [
+        "lab: error: end of input while waiting for an answer; answer at a terminal, or use --auto where the "
+        "command has it"]
+    assert not (tmp_path / "c.json").exists()
+
+
+def test_the_default_board_is_printed_on_an_a4_page(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "board.pdf"
+    assert lab_main(["calibrate", "board", "--out", str(out)]) == 0
+    assert "page 297 x 210 mm (A4 landscape)" in capsys.readouterr().out
+    box = re.search(rb"MediaBox \[ *0 0 ([\d.]+) ([\d.]+) *\]", out.read_bytes())
+    w_mm, h_mm = (float(v) / 72 * 25.4 for v in box.groups())
+    assert abs(w_mm - 297) < 0.3 and abs(h_mm - 210) < 0.3
+    assert lab_main(["calibrate", "board", "--out", str(tmp_path / "nodir" / "b.pdf")]) == 2

@@ -1,0 +1,131 @@
+"""`lab runs` lists past runs from their own files (a killed one included), `lab runs show RUN`
+prints one, and `lab run` without --out writes under the default runs root ($LAB_RUNS or the user
+config file)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from lab.cli import main as lab_main
+from lab.runs import runs_root
+
+LAB = [sys.executable, "-m", "lab"]
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _env(**extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("LAB_RUNS", "LAB_CONFIG")}
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env.update(extra)
+    return env
+
+
+def _lab(args: list[str], env: dict[str, str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(LAB + args, capture_output=True, text=True, timeout=600, env=env, cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Three runs under one root: a truss run written there by $LAB_RUNS (no --out), a short BORG
+    run, and a BORG run killed (SIGKILL) after its first step."""
+    base = tmp_path_factory.mktemp("catalogue")
+    root = base / "runs"
+    env = _env(LAB_RUNS=str(root))
+    r = _lab(["run", "truss", "tetrahelix:6", "--auto", "--quiet", "--speedup", "40"], env, base)
+    assert r.returncode == 0, r.stdout + r.stderr
+    r = _lab(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--modules", "2", "--speedup", "40",
+              "--out", str(root / "borg-short")], env, base)
+    assert r.returncode == 0, r.stdout + r.stderr
+    killed = root / "bench" / "borg-killed"          # one level deeper: found too
+    p = subprocess.Popen(LAB + ["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--out", str(killed)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=base)
+    ckpt = killed / "checkpoint.json"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (ckpt.exists() and json.loads(ckpt.read_text())["steps_completed"] >= 1):
+        time.sleep(0.02)
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait(timeout=10)
+    return root
+
+
+def test_the_catalogue_lists_every_run_with_what_it_was(root: Path) -> None:
+    r = _lab(["runs", "--root", str(root), "--json"], _env(), root)
+    assert r.returncode == 0, r.stderr
+    runs = {e["id"]: e for e in json.loads(r.stdout)["runs"]}
+    assert len(runs) == 3, sorted(runs)
+    truss = next(e for i, e in runs.items() if i.startswith("truss-"))   # the default name under $LAB_RUNS
+    assert truss["procedure"] == "truss" and truss["result"] == "completed" and truss["counts"] == {"nodes": 6}
+    short = runs["borg-short"]
+    assert short["procedure"] == "borg" and short["rig"] == "sim" and short["result"] == "completed"
+    assert sum(short["counts"][k] for k in ("ok", "flagged", "unverified")) == 2 and short["steps_completed"] == 2
+    killed = runs[os.path.join("bench", "borg-killed")]
+    assert killed["result"] == "killed" and "no stop record" in killed["reason"]
+    assert killed["steps_completed"] >= 1 and killed["duration_s"] is not None and killed["duration_s"] > 0
+    for e in runs.values():
+        assert e["start"].startswith("20") and e["duration_s"] is not None
+    # the plain listing: a header, one line per run (oldest first), a count
+    text = _lab(["runs", "--root", str(root)], _env(), root).stdout.splitlines()
+    assert text[0].split()[:4] == ["id", "procedure", "rig", "start"]
+    assert [ln.split()[0] for ln in text[1:4]] == [truss["id"], "borg-short", os.path.join("bench", "borg-killed")]
+    assert "killed" in text[3] and text[4].startswith("3 runs under ")
+
+
+def test_a_run_still_going_is_running_not_killed(root: Path, tmp_path: Path) -> None:
+    """A run without a stop record whose directory lock is held (flock) is in progress."""
+    import shutil
+
+    from lab.locks import FileLock
+    from lab.runs import read_run
+
+    going = tmp_path / "going"
+    shutil.copytree(root / "bench" / "borg-killed", going)
+    with FileLock(going / ".lock", "run directory"):
+        assert read_run(going).result == "running"
+    assert read_run(going).result == "killed"
+
+
+def test_show_prints_the_summary_and_the_verdict_table(root: Path) -> None:
+    r = _lab(["runs", "show", "borg-short", "--root", str(root)], _env(), root)
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    assert "procedure borg" in out and "result completed" in out and "command: lab run borg" in out
+    assert "dev mm" in out and "tol mm/deg" in out and out.rstrip().splitlines()[-1].startswith("dev: ")
+    r = _lab(["runs", "show", str(root / "bench" / "borg-killed" / "run.mcap")], _env(), root)  # by path
+    assert r.returncode == 0 and "result killed" in r.stdout and "1P " in r.stdout
+    # the default root from $LAB_RUNS
+    r = _lab(["runs", "show", "borg-short"], _env(LAB_RUNS=str(root)), root.parent)
+    assert r.returncode == 0 and "result completed" in r.stdout
+
+
+def test_the_default_root_comes_from_the_environment_or_the_user_config(tmp_path: Path) -> None:
+    assert runs_root({"HOME": str(tmp_path)}) == (Path("runs"), "default")
+    assert runs_root({"LAB_RUNS": "/data/runs"})[0] == Path("/data/runs")
+    cfg = tmp_path / "xdg" / "lab" / "config.toml"
+    cfg.parent.mkdir(parents=True)
+    cfg.write_text('runs = "lab-runs"\n')
+    assert runs_root({"XDG_CONFIG_HOME": str(tmp_path / "xdg")}) == (cfg.parent / "lab-runs", str(cfg))
+    assert runs_root({"XDG_CONFIG_HOME": str(tmp_path / "xdg"), "LAB_RUNS": "/x"})[0] == Path("/x")   # env first
+
+
+def test_bad_catalogue_input_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    assert lab_main(["runs", "--root", str(tmp_path / "none")]) == 2
+    assert lab_main(["runs", "show", "nope", "--root", str(tmp_path)]) == 2
+    cfg = tmp_path / "config.toml"
+    cfg.write_text('run = "typo"\n')
+    monkeypatch.delenv("LAB_RUNS", raising=False)
+    monkeypatch.setenv("LAB_CONFIG", str(cfg))
+    assert lab_main(["runs"]) == 2
+    cfg.write_text("runs = 3\n")
+    assert lab_main(["runs"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 4 and all(e.startswith("lab: error: ") for e in err), err
+    assert "'run'" in err[2] and str(cfg) in err[2] and "3" in err[3]
