@@ -114,6 +114,9 @@ def load_run(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     info = _read_json(info_path)
     if not isinstance(info, dict):
         raise UserError(f"{info_path}: expected a JSON object, got {type(info).__name__}")
+    if info.get("procedure") == "calibrate_rig":
+        raise UserError(f"{info_path}: a rig calibration run cannot be resumed; run `lab calibrate rig` again "
+                        f"(the survey takes under a minute)")
     if info.get("procedure") not in PROCEDURES:
         raise UserError(f"{info_path}: procedure: expected one of {', '.join(PROCEDURES)}, got {info.get('procedure')!r}")
     if not isinstance(info.get("params"), dict):

@@ -215,3 +215,11 @@ def test_oblique_sightings_left_out(incidence_deg, kept):
     assert side_ratio(corners, K, dist) == pytest.approx(math.cos(math.radians(incidence_deg)), abs=0.04)
     views, dropped = drop_oblique([CalibrationView(ViewMotion(0.0, (0.0,) * 6), (TagSighting(36, corners),))], K, dist)
     assert dropped == (0 if kept else 1) and len(views[0].sightings) == (1 if kept else 0)
+
+
+def test_a_calibration_run_is_not_resumed_as_something_else(capsys, survey):
+    """`lab resume` on a rig calibration's run directory must not start another procedure."""
+    run_dir = survey["run"].parent
+    rc, so, err = _run(capsys, "resume", str(run_dir), "--auto")
+    assert rc == 2 and so == ""
+    assert len(err.strip().splitlines()) == 1 and "cannot be resumed" in err and "calibrate" in err, err

@@ -287,11 +287,6 @@ def _resume(args: argparse.Namespace) -> int:
 
     run_dir = Path(args.run_dir)
     info, ckpt = rs.load_run(run_dir)
-    if info.get("procedure") not in ("borg", "truss"):
-        from lab.errors import UserError
-
-        raise UserError(f"{run_dir}: a {info.get('procedure')!r} run cannot be resumed; run it again "
-                        f"(`lab calibrate rig` surveys in under a minute)")
     params = dict(info["params"])
     if args.auto:
         params["auto"] = True
