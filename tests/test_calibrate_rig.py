@@ -223,3 +223,21 @@ def test_a_calibration_run_is_not_resumed_as_something_else(capsys, survey):
     rc, so, err = _run(capsys, "resume", str(run_dir), "--auto")
     assert rc == 2 and so == ""
     assert len(err.strip().splitlines()) == 1 and "cannot be resumed" in err and "calibrate" in err, err
+
+
+def test_a_borg_run_starts_from_the_calibration_file_and_skips_the_survey(survey, tmp_path):
+    """With a calibration file matching the world, the run goes straight to the modules, its
+    detector reads through the file's focal length and principal point, and the verdicts are the
+    ideal rig's."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "lab", "run", "borg", "--auto", "--quiet", "--modules", "3",
+                        "--speedup", "40", "--calibration", str(survey["out"]), "--out", str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    s = json.loads((out / "summary.json").read_text())
+    assert s["calibration"] == "file" and s["rig_survey"] is None
+    assert [m["verdict"] for m in s["modules"]] == ["ok", "ok", "ok"]
+    assert max(m["position_error_m"] for m in s["modules"]) < 0.004
