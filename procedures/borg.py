@@ -235,6 +235,9 @@ class BorgProcedure:
             rec.log_text("warning", f"rig calibration: {problem}")
         self.rig_survey_result = self._rig_survey_report(sol)
         rec.log_text("info", "rig calibration: " + json.dumps(self.rig_survey_result))
+        from procedures.console import console_of
+
+        console_of(run).line(_rig_survey_line(sol))
         self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self.rig_geometry,
                                    calibration=self.rig_calibration)
 
@@ -449,6 +452,18 @@ def format_row(mod: dict[str, Any]) -> str:
             f"{_num(mod.get('deviation_rad'), 180 / np.pi, 3):>7} {tol:>10} "
             f"{_num(mod.get('sigma_position_m'), 1000, 2):>6} {_num(mod.get('position_error_m'), 1000, 2):>7} "
             f"{_num(mod.get('rotation_error_rad'), 180 / np.pi, 3):>7}  {mod.get('reason', '')}").rstrip()
+
+
+def _rig_survey_line(sol: Any) -> str:
+    """One line for the operator: what the rig survey found and how well."""
+    cal = sol.calibration
+    sd = cal.sigmas()
+
+    def worst(name: str) -> str:
+        return f"{max(sd[name]['xyz_mm']):.2f} mm / {max(sd[name]['rot_deg']):.3f} deg"
+    return (f"rig calibration from {cal.views} views (corner rms {cal.rms_px:.2f} px): 1 sigma mount "
+            f"{worst('platform_T_camera')}, Stewart base {worst('world_T_base')}, focal "
+            f"{100 * sd['K']['fx_px'] / cal.K[0, 0]:.3f} %" + ("" if sol.ok else f"; {len(sol.problems)} warning(s) above"))
 
 
 def format_table(summary: dict[str, Any]) -> str:
