@@ -37,7 +37,7 @@ import numpy as np
 
 from estimation.fiducials import tag_object_points
 from estimation.rig_model import (AXIS, BASE, INTRINSICS, MOUNT, RigGeometry, ViewMotion, cal3_s2, chain_factor,
-                                  corner_factor, undistort_px)
+                                  corner_factor, nees, tag_prior_noise, undistort_px)
 from lab.geometry import Pose3, Rot3, to_xyzrpy
 from lab.rig_calibration import RigCalibration
 
@@ -177,7 +177,6 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
     others' corner sigma grows as side_ratio ** -oblique_exponent (`corner_sigma_px` is face-on)."""
     limits = limits or Limits()
     K0 = geometry.K
-    cfg = geometry.config
     views, dropped = drop_oblique(views, K0, dist, min_side_ratio)
     scale = {(k, s.tag_id): side_ratio(s.corners_px, K0, dist) ** -oblique_exponent
              for k, v in enumerate(views) for s in v.sightings}
@@ -270,8 +269,7 @@ def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, 
             if s.tag_id not in seen:
                 seen.add(s.tag_id)
                 sig = cfg.turntable_tag_sigma_m if s.tag_id in tt else 1e-6
-                graph.add(gtsam.PriorFactorPose3(T(s.tag_id), pose, gtsam.noiseModel.Diagonal.Sigmas(
-                    np.array([sig / size] * 3 + [sig] * 3))))
+                graph.add(gtsam.PriorFactorPose3(T(s.tag_id), pose, tag_prior_noise(sig, size)))
                 values.insert(T(s.tag_id), pose)
             graph.add(corner_factor(C(k), T(s.tag_id), undistort_px(s.corners_px, K_und, dist),
                                     tag_object_points(size), corner_sigma_px * (scale or {}).get((k, s.tag_id), 1.0)))
@@ -368,12 +366,8 @@ def truth_error(cal: RigCalibration, *, world_T_base: Pose3, platform_T_camera: 
 
 def nees_report(cal: RigCalibration, *, world_T_base: Pose3, platform_T_camera: Pose3) -> dict[str, float]:
     """Normalised estimation error squared of the mount and the base (6-dof each: expect ~6)."""
-    out = {}
-    for name, truth in (("platform_T_camera", platform_T_camera), ("world_T_base", world_T_base)):
-        est = getattr(cal, name)
-        e = Pose3.Logmap(est.between(truth))
-        out[name] = float(e @ np.linalg.solve(cal.covariance[name], e))
-    return out
+    return {name: nees(getattr(cal, name), truth, cal.covariance[name])
+            for name, truth in (("platform_T_camera", platform_T_camera), ("world_T_base", world_T_base))}
 
 
 def describe(cal: RigCalibration) -> dict[str, object]:

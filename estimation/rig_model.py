@@ -28,7 +28,6 @@ the calibration is fixed by the turntable tags and the modules already tied.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -87,8 +86,6 @@ class RigGeometry:
         """Prior means and covariances of A, B, M: a rig calibration file's, or the rig file's
         nominal values with the `[calibration]` table's sigmas."""
         c = self.config
-        gauge = np.array([c.turntable_axis_sigma_rad, c.turntable_axis_sigma_rad, _GAUGE_SIGMA,
-                          c.turntable_axis_sigma_m, c.turntable_axis_sigma_m, _GAUGE_SIGMA]) ** 2
         if calibration is not None:
             axis_cov = calibration.covariance["world_T_axis"].copy()
             axis_cov[[2, 5], :] = 0.0
@@ -98,19 +95,12 @@ class RigGeometry:
             covs = {AXIS: axis_cov, BASE: calibration.covariance["world_T_base"],
                     MOUNT: calibration.covariance["platform_T_camera"]}
         else:
+            # isotropic per block, so the same in the pose's own tangent as in its parent's axes
             means = {AXIS: Pose3(), BASE: self.nominal_world_T_base, MOUNT: self.nominal_platform_T_camera}
-            covs = {AXIS: np.diag(gauge),
+            covs = {AXIS: np.diag([c.turntable_axis_sigma_rad, c.turntable_axis_sigma_rad, _GAUGE_SIGMA,
+                                   c.turntable_axis_sigma_m, c.turntable_axis_sigma_m, _GAUGE_SIGMA]) ** 2,
                     BASE: np.diag([c.stewart_base_sigma_rad] * 3 + [c.stewart_base_sigma_m] * 3) ** 2,
                     MOUNT: np.diag([c.camera_mount_sigma_rad] * 3 + [c.camera_mount_sigma_m] * 3) ** 2}
-        # priors are in the tangent at the mean; express the base's and mount's rotation sigmas,
-        # given in their parent frames, in their own frames
-        for key in (BASE, MOUNT):
-            if calibration is None:
-                R = means[key].rotation().matrix()
-                Ad = np.zeros((6, 6))
-                Ad[:3, :3] = R.T
-                Ad[3:, 3:] = R.T
-                covs[key] = Ad @ covs[key] @ Ad.T
         return means, covs
 
     def chain_noise(self, motion: ViewMotion, M: Pose3 | None = None) -> gtsam.noiseModel.Base:
@@ -210,10 +200,9 @@ def undistort_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.
     return cv2.undistortPoints(pts, K, np.asarray(dist, float), P=K).reshape(-1, 2)
 
 
-def pose_sigmas(cov: np.ndarray) -> tuple[float, float]:
-    """(largest translation sigma m, largest rotation sigma rad) of a tangent covariance."""
-    return (float(math.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))),
-            float(math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))))
+def tag_prior_noise(sigma_m: float, size_m: float) -> gtsam.noiseModel.Base:
+    """A tag's placement prior: sigma_m per axis, and sigma_m over its size (rad) per rotation axis."""
+    return gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_m / size_m] * 3 + [sigma_m] * 3))
 
 
 def tangent_error(estimate: Pose3, truth: Pose3) -> np.ndarray:

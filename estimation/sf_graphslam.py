@@ -36,13 +36,12 @@ from typing import Iterable, Sequence
 import gtsam
 import numpy as np
 
-from estimation.fiducials import Detection
-from estimation.fiducials import tag_object_points
+from estimation.fiducials import Detection, tag_object_points
 from estimation.rig_model import (AXIS, BASE, MOUNT, RigGeometry, ViewMotion, cal3_s2, chain_factor, corner_factor,
-                                  undistort_px)
+                                  tag_prior_noise, undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
-from lab.rig_calibration import RigCalibration
 from lab.geometry import Pose3, Rot3
+from lab.rig_calibration import RigCalibration
 from lab.structures.borg import BorgModel
 
 C = gtsam.symbol_shorthand.C   # camera views
@@ -142,34 +141,17 @@ class SfGraphSlam:
         assert self.rig is not None
         cal = self.calibration
         if cal is not None and tag in cal.turntable_tags and tag in cal.turntable_tag_covariance:
-            mean, cov = cal.turntable_tags[tag], cal.turntable_tag_covariance[tag]
+            mean = cal.turntable_tags[tag]
+            noise = gtsam.noiseModel.Gaussian.Covariance(cal.turntable_tag_covariance[tag])
         else:
-            sig = self.rig.config.turntable_tag_sigma_m
             mean = self.model.tags[tag].structure_T_tag
-            cov = np.diag([sig / self.model.tags[tag].size_m] * 3 + [sig] * 3) ** 2
-        self._add(gtsam.PriorFactorPose3(self.key(tag), mean, gtsam.noiseModel.Gaussian.Covariance(cov)))
+            noise = tag_prior_noise(self.rig.config.turntable_tag_sigma_m, self.model.tags[tag].size_m)
+        self._add(gtsam.PriorFactorPose3(self.key(tag), mean, noise))
 
     def predicted_camera(self, motion: ViewMotion) -> Pose3:
         """structure_T_camera for a view from the current calibration estimate."""
         assert self.rig is not None
         return self.rig.predict(motion, *(self.estimate.atPose3(k) for k in (AXIS, BASE, MOUNT)))
-
-    def calibration_estimate(self) -> dict[str, Pose3]:
-        return {"world_T_axis": self.estimate.atPose3(AXIS), "world_T_base": self.estimate.atPose3(BASE),
-                "platform_T_camera": self.estimate.atPose3(MOUNT)}
-
-    def calibration_covariance(self) -> dict[str, np.ndarray]:
-        out = {}
-        for name, key in (("world_T_axis", AXIS), ("world_T_base", BASE), ("platform_T_camera", MOUNT)):
-            out[name] = self._marginals_of(key)
-        return out
-
-    def _marginals_of(self, key: int) -> np.ndarray:
-        if self._batch_solved:
-            if self._batch_marginals is None:
-                self._batch_marginals = gtsam.Marginals(self.graph, self.estimate)
-            return self._batch_marginals.marginalCovariance(key)
-        return self.isam.marginalCovariance(key)
 
     def key(self, tag: int) -> int:
         return _T(tag + GENERATION * self.generation.get(tag, 0))
@@ -214,12 +196,11 @@ class SfGraphSlam:
                 self._add(corner_factor(C(k), self.key(d.tag_id), undistort_px(d.corners_px, K, dist),
                                         tag_object_points(d.size_m), c.corner_sigma_px,
                                         robust_k=c.huber_k * 2 if c.huber_k else None, fixed=self._cal))
-            elif c.observation_sigma_m is not None or c.observation_sigma_rad is not None:
-                gauss = self.fixed_observation_noise
             else:
-                cov = 0.5 * (d.covariance + d.covariance.T)
-                gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
-            if c.observation == "pose":
+                if c.observation_sigma_m is not None or c.observation_sigma_rad is not None:
+                    gauss = self.fixed_observation_noise
+                else:
+                    gauss = gtsam.noiseModel.Gaussian.Covariance(0.5 * (d.covariance + d.covariance.T))
                 noise = (gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k), gauss)
                          if c.huber_k else gauss)
                 self._add(gtsam.BetweenFactorPose3(C(k), self.key(d.tag_id), d.camera_T_tag, noise))
