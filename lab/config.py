@@ -22,7 +22,7 @@ import numpy as np
 
 from lab.errors import UserError
 from lab.geometry import Pose3, from_xyzrpy
-from lab.rig_error import RigError, parse_rig_error
+from lab import rig_error as rig_errors   # the record is RigError too, like this module's exception
 
 DeviceKind = Literal["turntable", "stewart", "camera", "ipjr"]
 
@@ -111,7 +111,7 @@ class SimConfig:
     stewart: dict[str, float] = field(default_factory=dict)
     camera: dict[str, Any] = field(default_factory=dict)
     ipjr: dict[str, float] = field(default_factory=dict)
-    rig_error: RigError = field(default_factory=RigError)   # the true bench vs this file (lab/rig_error.py)
+    rig_error: rig_errors.RigError = field(default_factory=rig_errors.RigError)   # the true bench vs this file
 
 
 @dataclass(frozen=True)
@@ -454,11 +454,8 @@ def _sim(t: _Table) -> SimConfig:
     camera["pixel_noise"] = cam.number("pixel_noise", default=2.0, minimum=0.0)
     camera["blur_px"] = cam.number("blur_px", default=0.6, minimum=0.0)
     cam.done()
-    rig_error = RigError()
-    if "rig_error" in t.data:
-        t._used.add("rig_error")
-        rig_error = parse_rig_error(t.data["rig_error"], lambda key, problem: t.error(
-            f"rig_error.{key}" if key else "rig_error", problem))
+    rig_error = rig_errors.parse_rig_error(t._get("rig_error", {}), lambda key, problem: t.error(
+        f"rig_error.{key}" if key else "rig_error", problem))
     t.done()
     return SimConfig(seed, speedup, borg_n, pty, sections["turntable"], sections["stewart"], camera,
                      sections["ipjr"], rig_error)

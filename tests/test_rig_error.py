@@ -127,3 +127,14 @@ def test_the_software_is_not_told_the_rig_error():
         assert bench.world.rig_error == RIG.sim.rig_error
         assert bench.rig.sim.rig_error.ideal
         assert "rig_error" not in bench.rig.data["sim"]
+
+
+def test_a_sim_table_without_rig_error_means_an_ideal_rig():
+    from lab.config import SimConfig, parse_rig
+    import tomllib
+    from lab.config import default_rig_path
+
+    assert SimConfig().rig_error == RigError()            # the record, not the rig-file exception
+    data = tomllib.loads(default_rig_path().read_text())
+    data["sim"].pop("rig_error")
+    assert parse_rig(data, "r.toml", default_rig_path().parent).sim.rig_error.ideal
