@@ -84,25 +84,15 @@ def _scenario(seed: int, scale: float) -> str:
     return "\n".join(lines) + "\n" + FAULTS
 
 
-def _median_metric(path: Path, name: str) -> float:
-    from lab.recorder import topics
-    from lab.recorder.reader import iter_messages
-
-    vals = sorted(m.message.value for m in iter_messages(path) if m.topic == topics.METRICS and m.message.name == name)
-    return vals[len(vals) // 2] if vals else float("nan")
-
-
 def trial(out: Path, seed: int, scale: float, mode: str, modules: int, speedup: float) -> dict[str, Any]:
+    from procedures.bench_run import _median_metric
+
     d = out / f"{mode}-x{scale:g}-seed{seed}"
-    d.parent.mkdir(parents=True, exist_ok=True)
     sc = out / f"scenario-x{scale:g}-seed{seed}.toml"
     sc.write_text(_scenario(seed, scale))
-    if (d / "summary.json").exists():
-        (d / "summary.json").unlink()
-    for f in d.glob("*"):
-        f.unlink()
+    # --replace: a trial re-run over an earlier study's directory starts afresh
     cmd = [sys.executable, "-m", "lab", "run", "borg", "--auto", "--quiet", "--on-flag", "continue", "--scenario",
-           str(sc), "--modules", str(modules), "--speedup", str(speedup), "--out", str(d), *MODES[mode]]
+           str(sc), "--modules", str(modules), "--speedup", str(speedup), "--out", str(d), "--replace", *MODES[mode]]
     t0 = time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0

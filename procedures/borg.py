@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -113,6 +114,9 @@ class BorgProcedure:
             self.rig_survey = False
             self.rig_calibration = None
         self.rig_survey_result: dict[str, Any] | None = None
+        self.rig_survey_views: list[dict[str, Any]] | None = None   # the survey's inputs, for resume
+        self._row_header_shown = False
+        self._rejected_reported: set[int] = set()
         estimator_config = dict(estimator_config or {})
         if observation is not None:
             estimator_config["observation"] = observation
@@ -124,13 +128,14 @@ class BorgProcedure:
 
     # ---- plan and dry run --------------------------------------------------------------------
     def plan(self) -> list[StepSpec]:
-        first = [StepSpec(0, "rig calibration", {"rig_survey": len(self._rig_survey_plan().views)})] if self.rig_survey else []
+        first = [StepSpec(0, "rig calibration", {"rig_survey": len(self.rig_survey_plan.views)})] if self.rig_survey else []
         return first + [StepSpec(k + len(first), f"module {mod.name}",
                                  {"module": mod.name, "kind": mod.kind,
                                   "views": [v.label for v in self.surveys[mod.name].views]})
                         for k, mod in enumerate(self.modules)]
 
-    def _rig_survey_plan(self):
+    @cached_property
+    def rig_survey_plan(self):
         from procedures.rig_survey import plan_rig_survey
 
         rig = self.bench.rig
@@ -143,7 +148,7 @@ class BorgProcedure:
         problems = []
         for spec in steps:
             if "rig_survey" in spec.params:
-                for v in self._rig_survey_plan().views:
+                for v in self.rig_survey_plan.views:
                     for check, arg in ((tt.check_angle, v.turntable_rad), (st.check_pose, v.stewart_pose)):
                         try:
                             check(arg)
@@ -216,17 +221,15 @@ class BorgProcedure:
         The solution, with its covariance, is the prior the run refines; a quantity the survey could
         not pin down keeps a wide covariance, which is honest, and is reported as a warning."""
         from procedures.borg_measure import Measurement
-        from procedures.rig_survey import capture
+        from procedures.console import console_of
+        from procedures.rig_survey import capture, views_to_json
 
         rec = run.recorder
         rec.log_text("info", "no rig calibration: surveying the turntable tags to calibrate the rig")
-        plan = self._rig_survey_plan()
-        views = capture(self.bench, run, plan, self.measure.detector,
+        views = capture(self.bench, run, self.rig_survey_plan, self.measure.detector,
                         seed=[self.bench.scenario.seed, _STREAM_CAMERA, spec.index],
                         log_image=lambda frame, t: rec.log_image(topics.CAMERA_IMAGE, frame.image, t, "camera",
                                                                  format=IMAGE_FORMAT), overlap=True)
-        from procedures.rig_survey import views_to_json
-
         self.rig_survey_views = views_to_json(views)
         t0 = time.perf_counter()
         sol = self._solve_rig_survey(views)
@@ -235,8 +238,6 @@ class BorgProcedure:
             rec.log_text("warning", f"rig calibration: {problem}")
         self.rig_survey_result = self._rig_survey_report(sol)
         rec.log_text("info", "rig calibration: " + json.dumps(self.rig_survey_result))
-        from procedures.console import console_of
-
         console_of(run).line(_rig_survey_line(sol))
         self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self.rig_geometry,
                                    calibration=self.rig_calibration)
@@ -340,13 +341,13 @@ class BorgProcedure:
         from procedures.console import console_of
 
         console = console_of(run)
-        if not getattr(self, "_row_header_shown", False):
+        if not self._row_header_shown:
             console.line(TABLE_HEADER)
             self._row_header_shown = True
         if r.attempts > 1:
             console.warn(f"module {r.name} re-deployed by the operator; measured again (attempt {r.attempts})")
         console.line(format_row(self._row(r)))
-        new = sorted(self.measure.rejected_tags - getattr(self, "_rejected_reported", set()))
+        new = sorted(self.measure.rejected_tags - self._rejected_reported)
         if new:
             console.warn(f"tag{'s' if len(new) > 1 else ''} {', '.join(map(str, new))} rejected as displaced "
                          f"(does not fit the design while the rest of the structure does)")
@@ -375,7 +376,7 @@ class BorgProcedure:
                 "homed": self.homed,
                 # the survey's inputs, not its result: a resumed run solves them again and gets the
                 # same calibration bit for bit (a rounded copy would move every later estimate)
-                "rig_survey_views": getattr(self, "rig_survey_views", None),
+                "rig_survey_views": self.rig_survey_views,
                 "rig_survey": self.rig_survey_result}
 
     def restore(self, state: dict[str, Any], steps_done: list[StepSpec], run: RunContext) -> None:
