@@ -50,36 +50,28 @@ from sim_devices.stewart import platform_pose
 _STREAM_CAMERA, _STREAM_TT_TAGS, _STREAM_MOTION, _STREAM_IPJR = 1, 2, 3, 100
 
 
-def _perturbed(nominal_translation: np.ndarray, nominal_rotation: Rot3, offset: Iterable[float],
-               rpy: Iterable[float]) -> Pose3:
-    """A mounting pose off its nominal one: translated by `offset` and turned by roll-pitch-yaw
-    about its own origin, both in the parent frame's axes."""
-    R = Rot3.RzRyRx(*[float(a) for a in rpy])
-    return Pose3(R.compose(nominal_rotation), np.asarray(nominal_translation, float) + np.asarray(list(offset), float))
-
-
 @dataclass(frozen=True)
 class TrueRig:
     """The bench as it really is (what the rig file only approximates)."""
 
-    error: RigError
     world_T_base: Pose3 | None
     platform_T_camera: Pose3 | None
     world_T_axis: Pose3              # the turntable's rotation axis is this frame's z axis
 
 
-def true_rig(rig: Rig, error: RigError) -> TrueRig:
-    e = error
+def true_rig(rig: Rig, e: RigError) -> TrueRig:
+    """A mount off its nominal pose: turned by the roll-pitch-yaw about its own origin and moved by
+    the offset, both in the parent frame's axes (the structure faults' `_correction`)."""
     base = cam = None
     if rig.stewart is not None:
         n = rig.stewart.world_T_base
-        base = _perturbed(n.translation(), n.rotation(), e.stewart_base_offset_m, e.stewart_base_rotation_rad)
+        base = _correction(n.translation(), e.stewart_base_offset_m, e.stewart_base_rotation_rad).compose(n)
     if rig.camera is not None:
         n = rig.camera.platform_T_camera
-        cam = _perturbed(n.translation(), n.rotation(), e.camera_mount_offset_m, e.camera_mount_rotation_rad)
+        cam = _correction(n.translation(), e.camera_mount_offset_m, e.camera_mount_rotation_rad).compose(n)
     tx, ty = e.turntable_axis_tilt_rad
     dx, dy = e.turntable_axis_offset_m
-    return TrueRig(e, base, cam, Pose3(Rot3.RzRyRx(tx, ty, 0.0), np.array([dx, dy, 0.0])))
+    return TrueRig(base, cam, Pose3(Rot3.RzRyRx(tx, ty, 0.0), np.array([dx, dy, 0.0])))
 
 
 def _correction(about: np.ndarray, offset_m: Iterable[float], rotation_rad: Iterable[float]) -> Pose3:
