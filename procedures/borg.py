@@ -255,17 +255,13 @@ class BorgProcedure:
         return None if self.uncalibrated else self.rig_geometry
 
     def _rig_survey_report(self, sol: Any) -> dict[str, Any]:
-        from estimation.rig_calibration import describe, nees_report, truth_error
+        from estimation.rig_calibration import describe
+        from procedures.rig_survey import against_truth
 
         out: dict[str, Any] = {"views": sol.calibration.views, "rms_px": sol.calibration.rms_px,
                                "problems": list(sol.problems), "estimate": describe(sol.calibration)}
         if self.bench.simulated:
-            tr = self.bench.sim.world.true_rig
-            out["truth_error"] = truth_error(sol.calibration, world_T_base=tr.world_T_base,
-                                             platform_T_camera=tr.platform_T_camera, world_T_axis=tr.world_T_axis,
-                                             K=self.bench.sim.world.camera.K)
-            out["nees"] = nees_report(sol.calibration, world_T_base=tr.world_T_base,
-                                      platform_T_camera=tr.platform_T_camera)
+            out["truth_error"], out["nees"] = against_truth(sol.calibration, self.bench.sim.world)
         return out
 
     def _redeploy_in_world(self, name: str) -> None:

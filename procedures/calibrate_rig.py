@@ -190,8 +190,8 @@ class RigCalibrationProcedure:
             rec.log_text("warning", f"{spec.name}: no turntable tag seen in {len(views)} views")
 
     def _solve(self, run: RunContext) -> None:
-        from estimation.rig_calibration import Limits, nees_report, solve_rig, truth_error
-        from estimation.rig_model import nees
+        from estimation.rig_calibration import Limits, solve_rig
+        from procedures.rig_survey import against_truth
 
         rec = run.recorder
         self.sightings = sum(len(v.sightings) for v in self.views)
@@ -208,15 +208,7 @@ class RigCalibrationProcedure:
         rec.log_metric("rig_calibration/solve_s", r.solve_s, "s")
         rec.log_metric("rig_calibration/rms_px", sol.calibration.rms_px, "px")
         if self.bench.simulated:
-            w = self.bench.sim.world
-            tr = w.true_rig
-            r.truth_error = truth_error(sol.calibration, world_T_base=tr.world_T_base,
-                                        platform_T_camera=tr.platform_T_camera, world_T_axis=tr.world_T_axis,
-                                        K=w.camera.K)
-            r.nees = nees_report(sol.calibration, world_T_base=tr.world_T_base, platform_T_camera=tr.platform_T_camera)
-            # the axis: its tilt and where it crosses the plate (yaw and height are the gauge)
-            r.nees["world_T_axis"] = nees(sol.calibration.world_T_axis, tr.world_T_axis,
-                                          sol.calibration.covariance["world_T_axis"], dims=(0, 1, 3, 4))
+            r.truth_error, r.nees = against_truth(sol.calibration, self.bench.sim.world)
             for k, v in r.truth_error.items():
                 rec.log_metric(f"rig_calibration/truth_error/{k}", v, "m" if k.endswith("_m") else
                                "rad" if k.endswith("_rad") else "")

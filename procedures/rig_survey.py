@@ -153,3 +153,19 @@ def views_from_json(items: Sequence[dict[str, Any]]) -> list[CalibrationView]:
     return [CalibrationView(ViewMotion(float(v["turntable_rad"]), tuple(float(x) for x in v["stewart_pose"])),
                             tuple(TagSighting(int(s["id"]), np.asarray(s["corners_px"], float)) for s in v["sightings"]))
             for v in items]
+
+
+def against_truth(calibration: Any, world: Any) -> tuple[dict[str, float], dict[str, float]]:
+    """(errors, NEES) of a calibration against the simulated world's true rig: the mount and the
+    base over 6 dof, the axis over its tilt and where it crosses the plate (yaw and height are the
+    gauge).  Simulation only: the estimator never sees this."""
+    from estimation.rig_calibration import nees_report, truth_error
+    from estimation.rig_model import nees
+
+    tr = world.true_rig
+    errors = truth_error(calibration, world_T_base=tr.world_T_base, platform_T_camera=tr.platform_T_camera,
+                         world_T_axis=tr.world_T_axis, K=world.camera.K)
+    scores = nees_report(calibration, world_T_base=tr.world_T_base, platform_T_camera=tr.platform_T_camera)
+    scores["world_T_axis"] = nees(calibration.world_T_axis, tr.world_T_axis, calibration.covariance["world_T_axis"],
+                                  dims=(0, 1, 3, 4))
+    return errors, scores
