@@ -38,11 +38,11 @@ import time
 from estimation.bench_common import save_figure
 
 STUDIES = ("deployable", "closeout_strut", "closeout_square", "partial_deploy", "borg_face1", "tag_elimination",
-           "borg_full", "borg_full_rendered", "verification")
+           "borg_full", "borg_full_rendered", "verification", "precision")
 # (full, --quick) trial counts; the paper ran 50 (deployable) and 10 (close-outs)
 TRIALS = {"deployable": (50, 20), "closeout_strut": (20, 10), "closeout_square": (20, 10), "partial_deploy": (50, 20),
           "borg_face1": (20, 3), "tag_elimination": (50, 20), "borg_full": (20, 5), "borg_full_rendered": (5, 1),
-          "verification": (20, 4)}
+          "verification": (20, 4), "precision": (60, 12)}
 PARTIAL_HEIGHT_M = 0.40
 DISPLACED_TAG, DISPLACEMENT_M = 17, (0.0, 0.3, 0.0)
 
@@ -54,6 +54,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--only", choices=STUDIES, action="append", help="run only this study (repeatable)")
     parser.add_argument("--trials", type=int, default=None, help="trials per study (overrides the defaults)")
+    parser.add_argument("--corner-sigma-px", type=float, default=None, metavar="PX",
+                        help="precision: the true face-on corner noise (default 0.08, measured in simulated runs)")
+    parser.add_argument("--sigma-target-mm", type=float, default=None, metavar="MM",
+                        help="precision: plan each step's views to this module 1-sigma (default 0.5, as a run)")
+    parser.add_argument("--max-views", type=int, default=None, metavar="N",
+                        help="precision: view budget per step (default 12, as a run)")
     parser.add_argument("--literal-powell", type=int, default=None, metavar="N",
                         help="borg_face1: time Powell on the loop form of J on N trials (default 2; --quick 0: "
                              "estimated from its evaluation count and the measured time per evaluation)")
@@ -534,6 +540,33 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def study_precision(trials: int, seed: int, args: argparse.Namespace) -> dict:
+    """Verdicts near the tolerance and accuracy against the bound (estimation/bench_precision.py),
+    at the default tolerance and at 1 mm / 0.2 deg."""
+    import math
+    from dataclasses import replace
+
+    from estimation import bench_precision as bp
+    from lab.errors import UserError
+
+    setup = bp.PrecisionSetup()
+    if args.corner_sigma_px is not None:
+        if not (math.isfinite(args.corner_sigma_px) and 0 < args.corner_sigma_px <= 5):
+            raise UserError(f"--corner-sigma-px must be in (0, 5], got {args.corner_sigma_px}")
+        setup = replace(setup, corner_sigma_px=args.corner_sigma_px, graph_sigma_px=args.corner_sigma_px)
+    if args.sigma_target_mm is not None:
+        if not (math.isfinite(args.sigma_target_mm) and 0 < args.sigma_target_mm <= 100):
+            raise UserError(f"--sigma-target-mm must be in (0, 100], got {args.sigma_target_mm}")
+        setup = replace(setup, sigma_target_m=args.sigma_target_mm / 1000)
+    if args.max_views is not None:
+        if not 3 <= args.max_views <= 200:
+            raise UserError(f"--max-views must be in 3..200, got {args.max_views}")
+        setup = replace(setup, max_views=args.max_views)
+    tight = replace(setup, tolerance_m=0.001, tolerance_rad=math.radians(0.2))
+    return {"default": bp.study(trials, seed, setup, bp.CASES_DEFAULT, "default"),
+            "tight": bp.study(trials, seed + 1, tight, bp.CASES_TIGHT, "tight")}
+
+
 def to_markdown(res: dict) -> str:
     lines = [f"Command: `{res['command']}` — {res['wall_s']:.0f} s on this machine, seed {res['seed']}.", ""]
     lines.append("Noise (the paper's §3.1): camera view 0.01 m and 0.01° per axis, +10 %/m of distance; camera pose "
@@ -543,7 +576,7 @@ def to_markdown(res: dict) -> str:
     lines.append("")
     studies = res["studies"]
     for study, methods in studies.items():
-        if study == "verification":
+        if study in ("verification", "precision"):
             continue
         lines.append(f"#### {study}")
         lines.append("")
@@ -583,6 +616,12 @@ def to_markdown(res: dict) -> str:
                      f"Tag RMSE there: SF {v['sf_graphslam']['trans_rmse_m'] * 1000:.2f} mm, "
                      f"GraphSLAM {v['graphslam']['trans_rmse_m'] * 1000:.2f} mm.")
         lines.append("")
+    if "precision" in studies:
+        from estimation.bench_precision import markdown as precision_md
+
+        lines.append("#### precision: verdicts near the tolerance, accuracy against the bound (corner model)")
+        lines.append("")
+        lines.extend(precision_md(studies["precision"]))
     lines.extend(_targets_md(res))
     return "\n".join(lines)
 
@@ -631,6 +670,32 @@ def _targets_md(res: dict) -> list[str]:
         out.append(f"| displaced tag rejected every trial | {e['rejected_displaced']}/{e['trials']} "
                    f"(false rejections {e['false_rejections']}) | "
                    f"{'yes' if e['rejected_displaced'] == e['trials'] else 'no'} |")
+    if "precision" in st:
+        d, t = st["precision"]["default"], st["precision"]["tight"]
+
+        def rate(study, kind, size):
+            return next((r["flagged_rate"] for r in study["cases"] if r["kind"] == kind and r["size"] == size), None)
+
+        def row(name, value, ok, fmt="{:.1%}"):
+            out.append(f"| {name} | {fmt.format(value) if value is not None else 'n/a'} | "
+                       f"{'yes' if value is not None and ok(value) else 'no'} |")
+        row("precision: 6 mm offset flagged (tol 5 mm) >= 95 %", rate(d, "offset", 6.0), lambda v: v >= 0.95)
+        row("precision: 1.5 deg rotation flagged (tol 1 deg) >= 95 %", rate(d, "rotation", 1.5), lambda v: v >= 0.95)
+        row("precision: 2 mm offset flagged (tol 1 mm / 0.2 deg) >= 95 %", rate(t, "offset", 2.0), lambda v: v >= 0.95)
+        for label, study in (("tol 5 mm", d), ("tol 1 mm", t)):
+            g = study["good"]
+            row(f"precision: false flags, good modules ({label}) <= 0.5 %", g["false_flag_rate"], lambda v: v <= 0.005,
+                "{:.2%}")
+        g = d["good"]
+        row("precision: good-module position error median <= 0.3 mm", g["position_mm"].get("median"),
+            lambda v: v <= 0.3, "{:.3f} mm")
+        row("precision: good-module position error max <= 0.6 mm", g["position_mm"].get("max"), lambda v: v <= 0.6,
+            "{:.3f} mm")
+        row("precision: good-module rotation error median <= 0.1 deg", g["rotation_deg"].get("median"),
+            lambda v: v <= 0.1, "{:.3f} deg")
+        row("precision: good-module rotation error max <= 0.25 deg", g["rotation_deg"].get("max"), lambda v: v <= 0.25,
+            "{:.3f} deg")
+        row("precision: achieved RMSE / bound <= 1.3", g["rmse_over_bound"], lambda v: v <= 1.3, "{:.2f}")
     if "verification" in st:
         v = st["verification"]
         beyond = [k for k in v["sf_graphslam"]["flag_rate"] if (k.startswith("offset") and float(k.split(':')[1]) >= 15)
@@ -747,6 +812,8 @@ def run(args: argparse.Namespace) -> int:
             res["studies"][study] = study_borg_full_rendered(n(study), args.seed)
         elif study == "verification":
             res["studies"][study] = study_verification(n(study), args.seed)
+        elif study == "precision":
+            res["studies"][study] = study_precision(n(study), args.seed, args)
         res.setdefault("study_wall_s", {})[study] = time.perf_counter() - t0
     res["wall_s"] = time.perf_counter() - t_all
     md = to_markdown(res)

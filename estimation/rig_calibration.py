@@ -36,8 +36,9 @@ import gtsam
 import numpy as np
 
 from estimation.fiducials import tag_object_points
-from estimation.rig_model import (AXIS, BASE, INTRINSICS, MOUNT, RigGeometry, ViewMotion, cal3_s2, chain_factor,
-                                  corner_factor, nees, tag_prior_noise, undistort_px)
+from estimation.rig_model import (AXIS, BASE, INTRINSICS, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry,
+                                  ViewMotion, cal3_s2, chain_factor, corner_factor, nees, side_ratio, tag_prior_noise,
+                                  undistort_px)
 from lab.geometry import Pose3, Rot3, to_xyzrpy
 from lab.rig_calibration import RigCalibration
 
@@ -88,17 +89,8 @@ class RigSolution:
         return not self.problems
 
 
-MIN_SIDE_RATIO = 0.65
 # corner noise grows with obliquity: measured 0.09 px rms (ratio ~0.9) to 0.15 px (ratio ~0.7)
-OBLIQUE_EXPONENT = 2.0
 CORNER_SIGMA_FLOOR_PX = 0.05     # never trust corners better than this, whatever the residuals say
-
-
-def side_ratio(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> float:
-    """Shortest over longest side of a tag's undistorted quadrilateral: ~cos(incidence)."""
-    u = undistort_px(np.asarray(corners_px, float), K, dist)
-    sides = np.linalg.norm(np.roll(u, -1, axis=0) - u, axis=1)
-    return float(sides.min() / sides.max()) if sides.max() > 0 else 0.0
 
 
 def drop_oblique(views: Sequence[CalibrationView], K: np.ndarray, dist: np.ndarray,

@@ -37,8 +37,8 @@ import gtsam
 import numpy as np
 
 from estimation.fiducials import Detection, tag_object_points
-from estimation.rig_model import (AXIS, BASE, MOUNT, RigGeometry, ViewMotion, cal3_s2, chain_factor, corner_factor,
-                                  tag_prior_noise, undistort_px)
+from estimation.rig_model import (AXIS, BASE, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
+                                  chain_factor, corner_factor, side_ratio, tag_prior_noise, undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.geometry import Pose3, Rot3
 from lab.rig_calibration import RigCalibration
@@ -75,7 +75,9 @@ class SlamConfig:
     # does: a tag's tilt is then triangulated across views instead of read from one frontal view).
     # "corners" needs the camera (`camera=` K, dist); the IPPE pose still initialises the tag.
     observation: str = "pose"
-    corner_sigma_px: float = 0.15            # the detector's corner accuracy (edge-fit corners)
+    # the detector's face-on corner accuracy (edge-fit corners): measured against the simulated truth,
+    # a run's summary reports it as corner_rms_px (0.08 px on the default camera); grown with obliquity
+    corner_sigma_px: float = 0.08
 
 
 @dataclass
@@ -128,10 +130,16 @@ class SfGraphSlam:
         self._batch_solved = False                       # the estimate came from solve_batch, not iSAM2
         self._batch_marginals: gtsam.Marginals | None = None
         self.generation: dict[int, int] = {}             # tag -> how many times it was re-placed
+        # tags whose module's verdict is still open: their relations wait, so that the design
+        # cannot pull a module whose measurement is still being refined by extra views
+        self.held: set[int] = set()
+        # what each factor is, so that the bound can rebuild the graph with the true noise
+        self.specs: list[tuple] = []
         if rig is not None:
             means, covs = rig.priors(calibration)
             for key in (AXIS, BASE, MOUNT):
-                self._add(gtsam.PriorFactorPose3(key, means[key], gtsam.noiseModel.Gaussian.Covariance(covs[key])))
+                f = gtsam.PriorFactorPose3(key, means[key], gtsam.noiseModel.Gaussian.Covariance(covs[key]))
+                self._add(f, ("rig_prior", f, key, means[key]))
                 self._value(key, means[key])
             self.estimate = gtsam.Values(self.initial)
 
@@ -146,7 +154,8 @@ class SfGraphSlam:
         else:
             mean = self.model.tags[tag].structure_T_tag
             noise = tag_prior_noise(self.rig.config.turntable_tag_sigma_m, self.model.tags[tag].size_m)
-        self._add(gtsam.PriorFactorPose3(self.key(tag), mean, noise))
+        self._add(gtsam.PriorFactorPose3(self.key(tag), mean, noise), ("turntable_tag", self.key(tag), mean, noise,
+                                                                        self.model.tags[tag].size_m))
 
     def predicted_camera(self, motion: ViewMotion) -> Pose3:
         """structure_T_camera for a view from the current calibration estimate."""
@@ -181,21 +190,30 @@ class SfGraphSlam:
             if motion is None:
                 raise ValueError("a graph with a rig model needs each view's commanded motion")
             structure_T_camera = self.predicted_camera(motion)
-            self._add(chain_factor(self.rig, motion, C(k)))
+            self._add(chain_factor(self.rig, motion, C(k)), ("chain", motion, C(k)))
         else:
             assert structure_T_camera is not None
-            self._add(gtsam.PriorFactorPose3(C(k), structure_T_camera, self.camera_noise))
+            f = gtsam.PriorFactorPose3(C(k), structure_T_camera, self.camera_noise)
+            self._add(f, ("as_is", f))
         self._value(C(k), structure_T_camera)
         c = self.config
         for d in detections:
             if d.tag_id not in self.model.tags:
                 continue
+            scale = 1.0
+            if self.camera is not None:
+                # an oblique sighting's corners are worse (rig_model.side_ratio); too flat, none
+                ratio = side_ratio(d.corners_px, *self.camera)
+                if ratio < MIN_SIDE_RATIO:
+                    continue
+                scale = ratio ** -OBLIQUE_EXPONENT
+            spec = ("corners", C(k), self.key(d.tag_id), d.size_m, scale)
             if c.observation == "corners":
                 assert self.camera is not None
                 K, dist = self.camera
                 self._add(corner_factor(C(k), self.key(d.tag_id), undistort_px(d.corners_px, K, dist),
-                                        tag_object_points(d.size_m), c.corner_sigma_px,
-                                        robust_k=c.huber_k * 2 if c.huber_k else None, fixed=self._cal))
+                                        tag_object_points(d.size_m), c.corner_sigma_px * scale,
+                                        robust_k=c.huber_k * 2 if c.huber_k else None, fixed=self._cal), spec)
             else:
                 if c.observation_sigma_m is not None or c.observation_sigma_rad is not None:
                     gauss = self.fixed_observation_noise
@@ -203,7 +221,7 @@ class SfGraphSlam:
                     gauss = gtsam.noiseModel.Gaussian.Covariance(0.5 * (d.covariance + d.covariance.T))
                 noise = (gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k), gauss)
                          if c.huber_k else gauss)
-                self._add(gtsam.BetweenFactorPose3(C(k), self.key(d.tag_id), d.camera_T_tag, noise))
+                self._add(gtsam.BetweenFactorPose3(C(k), self.key(d.tag_id), d.camera_T_tag, noise), spec)
             if d.tag_id not in self.tags:
                 self.tags.add(d.tag_id)
                 self._value(self.key(d.tag_id), structure_T_camera.compose(d.camera_T_tag))
@@ -212,26 +230,77 @@ class SfGraphSlam:
             self.observations[d.tag_id] = self.observations.get(d.tag_id, 0) + 1
         return k
 
-    def _add(self, factor) -> None:
+    def _add(self, factor, spec: tuple) -> None:
         self._new_factors.add(factor)
         self.graph.add(factor)
+        self.specs.append(spec)
 
     def _value(self, key: int, value: Pose3) -> None:
         self._new_values.insert(key, value)
         self.initial.insert(key, value)
 
-    def update(self, snapshot: Iterable[int] = ()) -> dict[int, tuple[Pose3, np.ndarray | None]]:
+    def update(self, snapshot: Iterable[int] = (), hold: bool = False) -> dict[int, tuple[Pose3, np.ndarray | None]]:
         """Incremental solve (iSAM2) with what was added since the last update; then decide the
         semantic relations that became decidable, and solve again with the factors that passed.
 
         Returns the estimates (pose, marginal covariance) of the `snapshot` tags as they were
         *before* this update's semantic factors joined: verification reads those, so a module's own
-        design relations can never pull its measured deviation back to the design."""
+        design relations can never pull its measured deviation back to the design.  With `hold`,
+        the snapshot tags' relations wait until `release` (more views may still come for them)."""
+        snapshot = list(snapshot)
+        if hold:
+            self.held.update(snapshot)
         self._isam_step()
         snap = {t: (self.tag_pose(t), self._marginal(t)) for t in snapshot if self.has_tag(t)}
         if self.config.semantic and self._decide_relations():
             self._isam_step()
         return snap
+
+    def release(self, tags: Iterable[int]) -> None:
+        """The held tags' module is decided: their relations may now be tied."""
+        self.held.difference_update(tags)
+        if self.config.semantic and self._decide_relations():
+            self._isam_step()
+
+    # ---- the bound ---------------------------------------------------------------------------
+    def bound_graph(self, corner_sigma_px: float, upto: int | None = None, chain_noise=None,
+                    rig_prior_sigma: float | None = None,
+                    turntable_tag_sigma_m: float | None = None) -> gtsam.NonlinearFactorGraph:
+        """The graph's first `upto` factors rebuilt with the true noise and no robust kernel:
+        every tag sighting as its four corners (whichever observation model the estimate used: the
+        bound is of the measurements, not of the model) with `corner_sigma_px` face-on, grown for
+        obliquity as the graph's own, `chain_noise(motion)` for the rig chain
+        (default the graph's own), the rig priors at `rig_prior_sigma` (m and rad: how wrong their
+        means truly are; default the graph's own), the turntable tags' at `turntable_tag_sigma_m`,
+        semantic factors as they are.  Linearised at the true values
+        (`precision.bound_covariances`) it gives the Cramér–Rao bound."""
+        if self.camera is None:
+            raise ValueError("the bound needs the camera (K, dist)")
+        g = gtsam.NonlinearFactorGraph()
+        for spec in self.specs[:upto]:
+            kind = spec[0]
+            if kind == "as_is":
+                g.add(spec[1])
+            elif kind == "rig_prior":
+                _, f, key, mean = spec
+                if rig_prior_sigma is None:
+                    g.add(f)
+                else:
+                    g.add(gtsam.PriorFactorPose3(key, mean, gtsam.noiseModel.Isotropic.Sigma(6, rig_prior_sigma)))
+            elif kind == "turntable_tag":
+                _, key, mean, noise, size = spec
+                if turntable_tag_sigma_m is not None:
+                    noise = tag_prior_noise(turntable_tag_sigma_m, size)
+                g.add(gtsam.PriorFactorPose3(key, mean, noise))
+            elif kind == "chain":
+                assert self.rig is not None
+                g.add(chain_factor(self.rig, spec[1], spec[2], chain_noise(spec[1]) if chain_noise else None))
+            elif kind == "corners":
+                _, ck, tk, size, scale = spec
+                # the measurement is irrelevant to the covariance; only the Jacobians at the truth count
+                g.add(corner_factor(ck, tk, np.zeros((4, 2)), tag_object_points(size), corner_sigma_px * scale,
+                                    robust_k=None, fixed=self._cal))
+        return g
 
     def _marginal(self, tag: int) -> np.ndarray | None:
         try:
@@ -286,6 +355,12 @@ class SfGraphSlam:
                 continue
             if min(self.observations.get(rel.a, 0), self.observations.get(rel.b, 0)) < c.min_observations:
                 continue
+            if {rel.a, rel.b} & self.held:
+                # the module's verdict is still open: whether it is deployed is part of the
+                # measurement (read now, again with every round); the design waits
+                if rel.kind == "deployable":
+                    rel.deploy = self._deploy_check(rel)
+                continue
             rel.decided = True
             design = self.model.design_between(rel.a, rel.b)
             if rel.kind == "deployable":
@@ -311,7 +386,8 @@ class SfGraphSlam:
                 rel.reason = (f"relative pose {dt * 1000:.1f} mm / {math.degrees(dr):.2f} deg from design "
                               f"(1 sigma {sig_t * 1000:.1f} mm / {math.degrees(sig_r):.2f} deg)")
                 continue
-            self._add(gtsam.BetweenFactorPose3(self.key(rel.a), self.key(rel.b), design, self.semantic_noise))
+            f = gtsam.BetweenFactorPose3(self.key(rel.a), self.key(rel.b), design, self.semantic_noise)
+            self._add(f, ("as_is", f))
             rel.tied = True
             added += 1
         return added

@@ -1,15 +1,21 @@
-"""Module verdicts from an estimate: `ok`, `flagged` (with a reason) or `unverified`.
+"""Module verdicts from an estimate: `ok`, `flagged` (with a reason), `uncertain` or `unverified`.
 
 A module's pose is estimated from its usable tags (not rejected, estimated): the tag's estimated
 pose times the designed tag-to-module transform (a deployable's bottom tag places it; its top tag
 only if the bottom one is unusable and the module is deployed).  It is compared with the design:
 - `unverified`: no usable tag (none seen, or every one rejected as displaced);
 - `flagged`: a deployable that is not fully deployed (or kinematically impossible), or a pose
-  outside the tolerance for its type (default 5 mm and 1 deg) by more than `guard_sigmas` of its
+  outside the tolerance for its type (default 5 mm and 1 deg) by more than `band_sigmas` of its
   own 1-sigma uncertainty (so measurement noise alone does not flag a good module); for close-out
   members the reason names the zone (final assembly / captured / outside capture,
   estimation/semantics.py);
-- `ok` otherwise.
+- `ok`: inside the tolerance by more than `band_sigmas` of its uncertainty, in position and in
+  rotation;
+- `uncertain`: neither -- the deviation is within its own uncertainty band of the tolerance, so the
+  measurement cannot tell.  The procedure takes more views and asks again; a module still
+  uncertain when the view budget is spent is reported so, never passed as `ok`.
+The 1-sigma is the module's, not its tag's: the tag's covariance carried through the lever arm
+from the tag to the module's anchor (estimation/precision.py), where a tag's tilt shows.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from typing import Mapping
 
 import numpy as np
 
+from estimation.precision import module_sigma
 from estimation.semantics import DeployCheck, closeout_zone
 from lab.geometry import Pose3, pose_error
 from lab.structures.borg import BorgModel
@@ -29,7 +36,13 @@ from lab.structures.borg import BorgModel
 class Tolerance:
     position_m: float = 0.005
     rotation_rad: float = math.radians(1.0)
-    guard_sigmas: float = 2.0     # flag only when the excess over the tolerance is this many sigma
+    # decided only when the deviation is this many of its own sigmas clear of the tolerance: at 2,
+    # a good module's noise reaches the band in 2.3 % of readings along one axis, and those are
+    # re-measured (`uncertain`) rather than flagged
+    band_sigmas: float = 2.0
+
+    def describe(self) -> str:
+        return f"{self.position_m * 1000:g} mm / {math.degrees(self.rotation_rad):g} deg"
 
 
 @dataclass(frozen=True)
@@ -45,13 +58,14 @@ class Tolerances:
 @dataclass(frozen=True)
 class Verdict:
     module: str
-    verdict: str                         # ok | flagged | unverified
+    verdict: str                         # ok | flagged | uncertain | unverified
     reason: str
     estimate: Pose3 | None               # structure_T_module
     deviation_m: float | None            # against the design
     deviation_rad: float | None
-    sigma_m: float | None                # 1-sigma position uncertainty of the tag used
+    sigma_m: float | None                # 1-sigma position uncertainty of the module (worst direction)
     tags_used: tuple[int, ...]
+    sigma_rad: float | None = None       # 1-sigma rotation uncertainty
 
 
 def module_from_tag(model: BorgModel, module: str, tag: int, structure_T_tag: Pose3) -> Pose3:
@@ -82,14 +96,25 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
     est = module_from_tag(model, module, tag, estimates[tag])
     dt, dr = pose_error(est, m.structure_T_module)
     cov = covs.get(tag)
-    sigma = float(math.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0))) if cov is not None else None
-    sigma_r = float(math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))) if cov is not None else 0.0
+    if cov is not None:
+        tag_T_module = model.tags[tag].structure_T_tag.inverse().compose(m.structure_T_module)
+        ms = module_sigma(tag_T_module, cov)
+        sigma, sigma_r = ms.position_m, ms.rotation_rad
+    else:
+        sigma, sigma_r = None, None
     note = f" (tag {', '.join(map(str, rejected_here))} rejected as displaced)" if rejected_here else ""
-    # A deviation is a finding when it exceeds the tolerance by more than the guard band of its own
-    # uncertainty: noise alone must not flag a good module, a measured excess always does.
-    if (dt <= tol.position_m + tol.guard_sigmas * (sigma or 0.0)
-            and dr <= tol.rotation_rad + tol.guard_sigmas * sigma_r):
-        return Verdict(module, "ok", note.strip(" ()"), est, dt, dr, sigma, tuple(usable))
+    k = tol.band_sigmas
+    sp, sr = sigma or 0.0, sigma_r or 0.0
+    # A deviation is a finding when it exceeds the tolerance by more than the band of its own
+    # uncertainty; it passes when it is inside by as much; in between the measurement cannot tell.
+    over = dt - k * sp > tol.position_m or dr - k * sr > tol.rotation_rad
+    inside = dt + k * sp <= tol.position_m and dr + k * sr <= tol.rotation_rad
+    if inside:
+        return Verdict(module, "ok", note.strip(" ()"), est, dt, dr, sigma, tuple(usable), sigma_r)
+    if not over:
+        reason = (f"within its uncertainty of the tolerance: {dt * 1000:.2f} mm (1σ {sp * 1000:.2f} mm), "
+                  f"{math.degrees(dr):.2f} deg (1σ {math.degrees(sr):.2f} deg), tolerance {tol.describe()}")
+        return Verdict(module, "uncertain", reason + note, est, dt, dr, sigma, tuple(usable), sigma_r)
     reason = (f"out of tolerance: {dt * 1000:.1f} mm (tolerance {tol.position_m * 1000:.1f} mm), "
               f"{math.degrees(dr):.2f} deg (tolerance {math.degrees(tol.rotation_rad):.2f} deg)")
     if m.kind in ("closeout_strut", "closeout_square"):
@@ -99,4 +124,4 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
         axis = m.structure_T_module.rotation().matrix().T @ axis_structure
         lever = max(float(np.linalg.norm(q - m.structure_T_module.translation())) for q in p)
         reason += "; " + closeout_zone(design_T_est, axis, lever).describe()
-    return Verdict(module, "flagged", reason + note, est, dt, dr, sigma, tuple(usable))
+    return Verdict(module, "flagged", reason + note, est, dt, dr, sigma, tuple(usable), sigma_r)

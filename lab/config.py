@@ -135,6 +135,44 @@ class CalibrationConfig:
     turntable_repeatability_rad: float = math.radians(0.005)
 
 
+MODULE_KINDS = ("deployable", "closeout_strut", "closeout_square")
+
+
+@dataclass(frozen=True)
+class ToleranceConfig:
+    position_m: float = 0.005
+    rotation_rad: float = math.radians(1.0)
+
+
+@dataclass(frozen=True)
+class VerificationConfig:
+    """The `[verification]` table: each module type's tolerance, how far clear of it (in the
+    module's own sigmas) a verdict must be, and the survey's accuracy target and view budget per
+    step.  A run's `--tolerance`, `--sigma-target-mm` and `--max-views` override it."""
+
+    tolerances: dict[str, ToleranceConfig] = field(default_factory=lambda: {k: ToleranceConfig() for k in MODULE_KINDS})
+    band_sigmas: float = 2.0
+    # The planner adds views until the new module's predicted position 1-sigma is this small: at
+    # 0.5 mm a module 1 mm past a 5 mm tolerance (or 2 mm past 1 mm) is 2 sigma clear of it
+    sigma_target_m: float = 0.0005
+    max_views: int = 12
+
+
+def _verification(t: "_Table") -> VerificationConfig:
+    tolerances = {}
+    for kind in MODULE_KINDS:
+        k = t.table(kind, required=False)
+        tolerances[kind] = ToleranceConfig(k.number("position_mm", default=5.0, positive=True, maximum=1000.0) * 1e-3,
+                                           math.radians(k.number("rotation_deg", default=1.0, positive=True,
+                                                                 maximum=90.0)))
+        k.done()
+    cfg = VerificationConfig(tolerances, t.number("band_sigmas", default=2.0, minimum=0.0, maximum=10.0),
+                             t.number("sigma_target_mm", default=0.5, positive=True, maximum=100.0) * 1e-3,
+                             t.integer("max_views", default=12, minimum=1, maximum=200))
+    t.done()
+    return cfg
+
+
 # (key, default in the file's unit, SI factor, attribute)
 _CALIBRATION_KEYS = (
     ("camera_mount_sigma_mm", 10.0, 1e-3, "camera_mount_sigma_m"),
@@ -180,6 +218,7 @@ class Rig:
     description: str = ""
     data: dict[str, Any] = field(default_factory=dict)   # the file as read, for the run's start record
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    verification: VerificationConfig = field(default_factory=VerificationConfig)
 
     @property
     def simulated(self) -> bool:
@@ -339,11 +378,12 @@ def parse_rig(data: dict[str, Any], source: str = "<dict>", base_dir: Path | Non
     if "sim" in data:
         sim = _sim(top.table("sim"))
     calibration = _calibration(top.table("calibration", required=False), base_dir)
+    verification = _verification(top.table("verification", required=False))
 
     top.done()
     if not names:
         raise RigError(f"rig {source}: no devices: add at least one of [turntable], [stewart], [camera], [ipjr.NAME]")
-    return Rig(name, source, turntable, stewart, camera, ipjrs, sim, description, data, calibration)
+    return Rig(name, source, turntable, stewart, camera, ipjrs, sim, description, data, calibration, verification)
 
 
 def _link(t: _Table) -> Link:

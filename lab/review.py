@@ -42,7 +42,7 @@ DESIGN_COLOR = (150, 150, 150)
 TAG_DESIGN_COLOR = (80, 160, 255)
 TAG_ESTIMATE_COLOR = (255, 140, 0)
 ERROR_COLOR = (255, 0, 0)
-VERDICT_LEVEL = {"ok": "INFO", "flagged": "WARN", "unverified": "DEBUG"}
+VERDICT_LEVEL = {"ok": "INFO", "flagged": "WARN", "uncertain": "WARN", "unverified": "DEBUG"}
 LOG_LEVEL = {0: "TRACE", 1: "DEBUG", 2: "INFO", 3: "WARN", 4: "ERROR", 5: "CRITICAL"}
 
 

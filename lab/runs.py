@@ -197,7 +197,7 @@ def _counts(summary: Any) -> dict[str, int]:
     mods = summary.get("modules")
     if isinstance(mods, list):
         out = {v: sum(1 for m in mods if isinstance(m, dict) and m.get("verdict") == v)
-               for v in ("ok", "flagged", "unverified")}
+               for v in ("ok", "flagged", "uncertain", "unverified")}
         if summary.get("rejected_tags"):
             out["rejected tags"] = len(summary["rejected_tags"])
         return out

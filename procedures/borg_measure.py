@@ -34,6 +34,7 @@ class Measurement:
         self.slam = SfGraphSlam(model, SlamConfig(semantic=self.config.get("semantic", True),
                                                   observation=self.config.get("observation", "corners")),
                                 rig=rig, calibration=calibration, camera=(K, np.asarray(intrinsics.dist, float)))
+        self.detector_camera = (np.asarray(K, float), np.asarray(intrinsics.dist, float))
         self.tolerances = Tolerances()
         self.cutoff_m = float(self.config.get("elimination_cutoff_m", 0.05))
         self.rejected_tags: set[int] = set()
@@ -76,6 +77,9 @@ class Measurement:
 
     # ---- one step ------------------------------------------------------------------------------
     def add_step(self, module: str, views: list[dict[str, Any]], replay: bool = False) -> None:
+        """A step's views (or a further round of them for the same module).  The module's tags are
+        held out of the semantic relations until `finish`: its verdict is read from the
+        measurement alone, however many rounds of views it takes."""
         if module not in self.placed:
             self.placed.append(module)
         self.last_views = []
@@ -84,8 +88,23 @@ class Measurement:
             motion = ViewMotion(float(v["turntable_rad"]), tuple(float(x) for x in v["stewart_pose"]))
             self.last_views.append(self.slam.add_view(structure_T_camera, self.detections_from_json(v["detections"]),
                                                       motion=motion if self.rig is not None else None))
-        self._measured[module] = self.slam.update(snapshot=self.model.module_by_name[module].tags)
+        self._measured[module] = self.slam.update(snapshot=self.model.module_by_name[module].tags, hold=True)
         self._eliminate()
+
+    def finish(self, module: str) -> None:
+        """The module's verdict is final: its relations to the design may now be tied."""
+        self.slam.release(self.model.module_by_name[module].tags)
+
+    def verdict_tags(self, module: str) -> tuple[int, ...]:
+        v = self._verdicts.get(module)
+        return () if v is None else v.tags_used
+
+    def verdict_tag_covariance(self, module: str) -> np.ndarray | None:
+        """The covariance of the tag the verdict reads the module from, as measured."""
+        v = self._verdicts.get(module)
+        if v is None or not v.tags_used:
+            return None
+        return self._measured.get(module, {}).get(v.tags_used[0], (None, None))[1]
 
     def redeploy(self, module: str) -> None:
         """The operator re-placed / re-deployed `module`: measure it afresh."""
@@ -114,7 +133,7 @@ class Measurement:
                           not_deployed=self.slam.not_deployed(), tolerances=self.tolerances)
         self._verdicts[module] = v
         return ModuleResult(module, v.verdict, v.reason, deviation_m=v.deviation_m, deviation_rad=v.deviation_rad,
-                            sigma_position_m=v.sigma_m, tags_seen=[t for t in self.model.module_by_name[module].tags
+                            sigma_position_m=v.sigma_m, sigma_rotation_rad=v.sigma_rad, tags_seen=[t for t in self.model.module_by_name[module].tags
                                                                    if t in estimates])
 
     def camera_estimates(self) -> list[tuple[Pose3, np.ndarray | None]]:

@@ -2,7 +2,13 @@
 module's tags together with tags they are related to.
 
 The plan is made from the design (and the rig's kinematics), before anything moves, so that a dry
-run can check every move of a whole procedure.  Visibility is predicted, not guaranteed: a tag is
+run can check every move of a whole procedure.  It is made in two passes: coverage (each new tag
+seen from two turntable angles, with a related tag, a deployable's two tags together), then
+accuracy: views are added, best first, until the new module's position 1-sigma predicted from the
+information the views would carry (estimation/precision.py: corner Jacobians at the design pose,
+the graph's corner noise, the camera pose's uncertainty) reaches `PrecisionTarget.sigma_m`, or the
+view budget is spent.  `more_views` does the same during the run, starting from the module's
+covariance in the graph, when its verdict came out `uncertain`.  Visibility is predicted, not guaranteed: a tag is
 expected in a view when its four corners project into the image with a margin, it is large enough
 to decode, it faces the camera within `max_view_angle`, and no nearer tag's outline covers it.
 """
@@ -15,6 +21,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from estimation.fiducials import tag_object_points
+from estimation.precision import covariance_from_information, module_sigma, view_information
 from lab.geometry import Pose3, from_xyzrpy
 from lab.structures.borg import BorgModel
 
@@ -38,7 +46,7 @@ class SurveyConfig:
     max_view_angle_rad: float = np.radians(62.0)
     max_distance_m: float = 4.0
     occlusion_overlap: float = 0.25       # fraction of a tag's box covered by a nearer tag's box
-    angle_offsets_rad: tuple[float, ...] = (0.0, np.radians(-25.0), np.radians(25.0))
+    angle_offsets_rad: tuple[float, ...] = tuple(np.radians([0.0, -25.0, 25.0, -10.0, 10.0, -18.0, 18.0, -32.0, 32.0]))
     stewart_poses: tuple[tuple[float, ...], ...] = (
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
         (0.0, 0.04, 0.0, 0.0, 0.0, 0.0),
@@ -70,12 +78,30 @@ class CameraModel:
             self.platform_T_camera)
 
 
+@dataclass(frozen=True)
+class PrecisionTarget:
+    """What the accuracy pass aims at and what it assumes."""
+
+    sigma_m: float = 0.0005               # the new module's position 1-sigma to reach
+    max_views: int = 12                   # views per step, coverage views included
+    corner_sigma_px: float = 0.08         # the graph's corner noise (SlamConfig.corner_sigma_px)
+    # the camera pose as the graph knows it relative to the structure, per view (treated as
+    # independent between views: the prediction is of the views' own contribution)
+    camera_sigma_m: float = 0.0001
+    camera_sigma_rad: float = np.radians(0.005)
+
+    @property
+    def camera_covariance(self) -> np.ndarray:
+        return np.diag([self.camera_sigma_rad] * 3 + [self.camera_sigma_m] * 3) ** 2
+
+
 @dataclass
 class SurveyPlan:
     module: str
     views: list[View]
     expected: list[list[int]]              # predicted visible tags per view
     unobservable: list[int] = field(default_factory=list)   # new tags no candidate view sees
+    predicted_sigma_m: float | None = None  # the module's position 1-sigma the views should give
 
 
 class SurveyPlanner:
@@ -152,7 +178,7 @@ class SurveyPlanner:
                 seen.append(tid)
         return seen
 
-    def plan(self, module: str, placed_modules: Sequence[str]) -> SurveyPlan:
+    def plan(self, module: str, placed_modules: Sequence[str], precision: PrecisionTarget | None = None) -> SurveyPlan:
         """Views for the step that placed `module`; `placed_modules` includes it."""
         model = self.model
         present = set(model.turntable.tag_ids)
@@ -160,7 +186,7 @@ class SurveyPlanner:
             present.update(model.module_by_name[name].tags)
         new = list(model.module_by_name[module].tags)
         related = {t: [r for r in _related(model, t) if r in present and r not in new] for t in new}
-        sight = {v: self.visible(v, present) for v in self.candidates}
+        sight = {v: self.visible(v, present) for v in self._facing(module)}
         # requirements: each new tag seen min_sightings times; each new tag seen with a related tag;
         # the new module's tags seen together (deployables: B and T in one view)
         need_count = {t: self.config.min_sightings for t in new}
@@ -184,7 +210,7 @@ class SurveyPlanner:
                         gain += 2.0
                     # prefer views that also see many tags (better conditioned), then small motions
                     return gain, len(s) * 0.01 - abs(v.turntable_rad) * 1e-3
-                best = max((v for v in self.candidates if v not in chosen), key=score, default=None)
+                best = max((v for v in sight if v not in chosen), key=score, default=None)
                 if best is None or score(best)[0] <= 0:
                     break
                 s = set(sight[best])
@@ -202,10 +228,79 @@ class SurveyPlanner:
             face = model.module_by_name[module].face
             chosen = [min(self.candidates, key=lambda v: (abs(v.turntable_rad - (face - 1) * np.pi / 2),
                                                           np.abs(v.stewart_pose).sum()))]
+        predicted = None
+        if precision is not None:
+            extra, predicted = self._accurate(module, [v for v in sight if v not in chosen], sight, precision,
+                                              self._information(module, chosen, sight, precision),
+                                              precision.max_views - len(chosen))
+            chosen += extra
         chosen.sort(key=lambda v: (v.turntable_rad, v.stewart_pose))
-        expected = [sight[v] for v in chosen]
+        expected = [sight[v] if v in sight else self.visible(v, present) for v in chosen]
         seen_new = set().union(*map(set, expected)) if expected else set()
-        return SurveyPlan(module, chosen, expected, [t for t in new if t not in seen_new])
+        return SurveyPlan(module, chosen, expected, [t for t in new if t not in seen_new], predicted)
+
+    def more_views(self, module: str, placed_modules: Sequence[str], taken: Sequence[View],
+                   tag_covariance: np.ndarray | None, precision: PrecisionTarget, budget: int) -> SurveyPlan:
+        """Views to add, at most `budget`, for a module whose verdict is still open: the accuracy
+        pass again, starting from its verdict tag's covariance in the graph."""
+        present = set(self.model.turntable.tag_ids)
+        for name in placed_modules:
+            present.update(self.model.module_by_name[name].tags)
+        sight = {v: self.visible(v, present) for v in self._facing(module) if v not in taken}
+        info = np.zeros((6, 6)) if tag_covariance is None else np.linalg.inv(tag_covariance)
+        views, predicted = self._accurate(module, list(sight), sight, precision, info, budget)
+        views.sort(key=lambda v: (v.turntable_rad, v.stewart_pose))
+        return SurveyPlan(module, views, [sight[v] for v in views], [], predicted)
+
+    # ---- accuracy ------------------------------------------------------------------------------
+    def _facing(self, module: str) -> list[View]:
+        """Candidates that can see the module's face at all (the others only cost time to check)."""
+        face = self.model.module_by_name[module].face
+        if not 1 <= face <= 4:
+            return list(self.candidates)
+        centre = (face - 1) * np.pi / 2
+        return [v for v in self.candidates
+                if abs((v.turntable_rad - centre + np.pi) % (2 * np.pi) - np.pi) <= np.radians(70.0)]
+
+    def _verdict_tag(self, module: str) -> int:
+        return self.model.module_by_name[module].tags[0]
+
+    def _view_information(self, module: str, view: View, sight: dict[View, list[int]],
+                          precision: PrecisionTarget) -> np.ndarray:
+        tag = self._verdict_tag(module)
+        if tag not in sight.get(view, ()):
+            return np.zeros((6, 6))
+        spec = self.model.tags[tag]
+        return view_information(self.structure_T_camera(view), spec.structure_T_tag, self.camera.K,
+                                tag_object_points(spec.size_m), precision.corner_sigma_px,
+                                precision.camera_covariance)
+
+    def _information(self, module: str, views: Sequence[View], sight: dict[View, list[int]],
+                     precision: PrecisionTarget) -> np.ndarray:
+        return sum((self._view_information(module, v, sight, precision) for v in views), np.zeros((6, 6)))
+
+    def predicted_sigma(self, module: str, info: np.ndarray) -> float:
+        cov = covariance_from_information(info)
+        if cov is None:
+            return float("inf")
+        tag = self._verdict_tag(module)
+        m = self.model.module_by_name[module]
+        tag_T_module = self.model.tags[tag].structure_T_tag.inverse().compose(m.structure_T_module)
+        return module_sigma(tag_T_module, cov).position_m
+
+    def _accurate(self, module: str, candidates: list[View], sight: dict[View, list[int]],
+                  precision: PrecisionTarget, info: np.ndarray, budget: int) -> tuple[list[View], float]:
+        """Greedy: the view that shrinks the predicted sigma most, until the target or the budget."""
+        gains = {v: self._view_information(module, v, sight, precision) for v in candidates}
+        gains = {v: g for v, g in gains.items() if g.any()}
+        chosen: list[View] = []
+        sigma = self.predicted_sigma(module, info)
+        while sigma > precision.sigma_m and len(chosen) < budget and gains:
+            best = min(gains, key=lambda v: (self.predicted_sigma(module, info + gains[v]), abs(v.turntable_rad)))
+            info = info + gains.pop(best)
+            chosen.append(best)
+            sigma = self.predicted_sigma(module, info)
+        return chosen, sigma
 
 
 def _related(model: BorgModel, tag: int) -> list[int]:

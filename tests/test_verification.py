@@ -105,9 +105,29 @@ def test_out_of_tolerance_is_flagged_and_noise_alone_is_not(model):
     v = verify_module(model, "2D", est, covariances=covs())
     assert v.verdict == "flagged" and "out of tolerance: 8.0 mm" in v.reason
     est[1] = shifted(design_estimates(model)[1], [0.0, 0.0, 0.0055])
-    # 5.5 mm measured with 1 mm (1 sigma) uncertainty: not a finding; with 0.1 mm it is
-    assert verify_module(model, "2D", est, covariances=covs(sigma_m=0.001)).verdict == "ok"
+    # 5.5 mm measured with 1 mm (1 sigma) uncertainty: the measurement cannot tell, and says so
+    # with the deviation, sigma and tolerance; with 0.1 mm it is a finding
+    v = verify_module(model, "2D", est, covariances=covs(sigma_m=0.001))
+    assert v.verdict == "uncertain", v
+    assert "5.50 mm (1σ 1.0" in v.reason and "tolerance 5 mm / 1 deg" in v.reason
     assert verify_module(model, "2D", est, covariances=covs(sigma_m=0.0001)).verdict == "flagged"
+    # 4.5 mm: inside by 5 sigma of 0.1 mm is ok; by half a sigma of 1 mm is not decided either way
+    est[1] = shifted(design_estimates(model)[1], [0.0, 0.0, 0.0045])
+    assert verify_module(model, "2D", est, covariances=covs(sigma_m=0.0001)).verdict == "ok"
+    assert verify_module(model, "2D", est, covariances=covs(sigma_m=0.001)).verdict == "uncertain"
+
+
+def test_module_sigma_carries_the_tag_tilt_through_the_lever_arm():
+    from estimation.precision import module_sigma
+    from lab.geometry import Pose3, Rot3
+
+    # a tag known to 0.1 mm in position and 0.1 deg in tilt, 0.15 m from the module's anchor
+    cov = np.diag([np.radians(0.1) ** 2] * 3 + [1e-4 ** 2] * 3)
+    lever = Pose3(Rot3(), np.array([0.15, 0.0, 0.0]))
+    s = module_sigma(lever, cov)
+    assert s.position_m == pytest.approx(np.hypot(1e-4, 0.15 * np.radians(0.1)), rel=1e-6)
+    assert s.rotation_rad == pytest.approx(np.radians(0.1))
+    assert module_sigma(Pose3(), cov).position_m == pytest.approx(1e-4)
 
 
 def test_tolerances_are_per_module_type_and_configurable(model):

@@ -33,6 +33,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--observation", choices=("corners", "pose"), default=None,
                    help="how a tag sighting enters SF-GraphSLAM: its four corners' reprojection (default) or the "
                         "detector's single-view pose")
+    b.add_argument("--tolerance", action="append", default=None, metavar="KIND=MM,DEG",
+                   help="a module type's tolerance, e.g. closeout_square=5,1 (KIND: deployable, closeout_strut, "
+                        "closeout_square or all; repeatable; default: the rig's [verification] table, else 5 mm, 1 deg)")
+    b.add_argument("--sigma-target-mm", type=float, default=None, metavar="MM",
+                   help="plan each step's views until the new module's predicted position 1-sigma is this small "
+                        "(default: the rig's [verification] sigma_target_mm, else 0.5)")
+    b.add_argument("--max-views", type=int, default=None, metavar="N",
+                   help="view budget per step, extra views for an uncertain verdict included (default: the rig's "
+                        "[verification] max_views, else 12)")
     b.set_defaults(func=_run_borg)
 
     t = rsub.add_parser("truss", help="IPJR truss assembly with MLE / EKF / open-loop correction")
@@ -123,7 +132,9 @@ def _build(procedure: str, params: dict[str, Any]):
         proc = BorgProcedure(bench, on_flag=params.get("on_flag", "stop"), n=params.get("n"),
                              max_modules=params.get("modules"), calibration=params.get("calibration"),
                              rig_survey=False if params.get("no_rig_survey") else None,
-                             observation=params.get("observation"), uncalibrated=bool(params.get("uncalibrated")))
+                             observation=params.get("observation"), uncalibrated=bool(params.get("uncalibrated")),
+                             tolerances=params.get("tolerance"), sigma_target_mm=params.get("sigma_target_mm"),
+                             max_views=params.get("max_views"))
         return proc, bench, f"borg:{proc.model.n}"
     except BaseException:
         bench.close()

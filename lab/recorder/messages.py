@@ -64,7 +64,7 @@ PACKAGE = "lab"
 
 RUN_RESULTS = ("completed", "aborted", "failed")
 STEP_PHASES = ("start", "end", "error")
-VERDICTS = ("ok", "flagged", "unverified")
+VERDICTS = ("ok", "flagged", "uncertain", "unverified")
 DIRECTIONS = ("tx", "rx", "event")
 
 _T = descriptor_pb2.FieldDescriptorProto
