@@ -563,8 +563,13 @@ def study_precision(trials: int, seed: int, args: argparse.Namespace) -> dict:
             raise UserError(f"--max-views must be in 3..200, got {args.max_views}")
         setup = replace(setup, max_views=args.max_views)
     tight = replace(setup, tolerance_m=0.001, tolerance_rad=math.radians(0.2))
-    return {"default": bp.study(trials, seed, setup, bp.CASES_DEFAULT, "default"),
-            "tight": bp.study(trials, seed + 1, tight, bp.CASES_TIGHT, "tight")}
+    out = {"default": bp.study(trials, seed, setup, bp.CASES_DEFAULT, "default"),
+           "tight": bp.study(trials, seed + 1, tight, bp.CASES_TIGHT, "tight")}
+    # the other observation models on the same trials (same seeds), at the default tolerance
+    for obs in ("corner-info", "pose"):
+        out[f"default-{obs}"] = bp.study(trials, seed, replace(setup, observation=obs), bp.CASES_DEFAULT,
+                                         f"default-{obs}")
+    return out
 
 
 def to_markdown(res: dict) -> str:
