@@ -279,6 +279,47 @@ def study(trials: int, seed: int, setup: PrecisionSetup | None = None, cases=CAS
                      "views_median": float(np.median(good["views"])) if good["views"] else None}}
 
 
+def solve_times(seed: int, observation: str, setup: PrecisionSetup | None = None, views_per_step: int = 5,
+                repeats: int = 3) -> dict:
+    """The whole cube (27 modules, `views_per_step` views each, drawn corners): the iSAM2 step
+    (median, max) as a run takes it, and the batch Levenberg-Marquardt solve of the full graph from
+    its initial values (min over `repeats`)."""
+    import time
+
+    from estimation import slam_sim as ss
+    from estimation.sf_graphslam import SfGraphSlam, SlamConfig
+    from lab.geometry import Pose3, Rot3
+    from lab.structures.borg import build_borg
+
+    setup = setup or PrecisionSetup()
+    rng = np.random.default_rng(seed)
+    model = build_borg()
+    truth = ss.true_tag_poses(model, ss.StructureFaults(), list(model.tags))
+    cfg = SlamConfig(observation=observation, corner_sigma_px=setup.graph_sigma_px, camera_sigma_m=setup.camera_sigma_m,
+                     camera_sigma_rad=setup.camera_sigma_rad)
+    slam = SfGraphSlam(model, cfg, camera=(ss.SIM_K, np.zeros(5)))
+    present = list(model.turntable.tag_ids)
+    steps = []
+    for m in model.modules:
+        present += list(m.tags)
+        pool = _pool(model, m.face)
+        for cam in [pool[3 * 5 + 1], pool[3 * 2 + 1], pool[3 * 8 + 1], pool[3 * 5], pool[3 * 5 + 2]][:views_per_step]:
+            reported = cam.compose(Pose3(Rot3.Expmap(rng.normal(0, setup.camera_sigma_rad, 3)),
+                                         rng.normal(0, setup.camera_sigma_m, 3)))
+            slam.add_view(reported, _sight(rng, ss.SIM_K, cam, reported, truth, present, model, setup))
+        t0 = time.perf_counter()
+        slam.update(snapshot=m.tags)
+        steps.append(time.perf_counter() - t0)
+    batch = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        slam.solve_batch()
+        batch.append(time.perf_counter() - t0)
+    return {"observation": observation, "factors": int(slam.graph.size()), "views": slam.n_views,
+            "tags": len(slam.tags), "step_median_ms": float(np.median(steps) * 1000),
+            "step_max_ms": float(np.max(steps) * 1000), "batch_ms": float(min(batch) * 1000)}
+
+
 def _stats(v: np.ndarray) -> dict:
     if not len(v):
         return {}
@@ -287,7 +328,17 @@ def _stats(v: np.ndarray) -> dict:
 
 def markdown(res: dict) -> list[str]:
     lines = []
-    for s in res.values():
+    timing = res.get("timing")
+    if timing:
+        lines += ["### Solve times, full cube (27 modules, 5 views each, drawn corners)", "",
+                  "| observation | factors | iSAM2 step median / max (ms) | batch LM from scratch (ms) |",
+                  "|---|---|---|---|"]
+        lines += [f"| {t['observation']} | {t['factors']} | {t['step_median_ms']:.1f} / {t['step_max_ms']:.0f} | "
+                  f"{t['batch_ms']:.1f} |" for t in timing]
+        lines.append("")
+    for key, s in res.items():
+        if key == "timing":
+            continue
         g = s["good"]
         lines += [f"### Precision, {s.get('observation', 'corners')} model, tolerance {s['tolerance_mm']:g} mm / "
                   f"{s['tolerance_deg']:g} deg "

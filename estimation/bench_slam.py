@@ -569,6 +569,7 @@ def study_precision(trials: int, seed: int, args: argparse.Namespace) -> dict:
     for obs in ("corner-info", "pose"):
         out[f"default-{obs}"] = bp.study(trials, seed, replace(setup, observation=obs), bp.CASES_DEFAULT,
                                          f"default-{obs}")
+    out["timing"] = [bp.solve_times(seed, obs, setup) for obs in ("corners", "corner-info", "pose")]
     return out
 
 
@@ -677,6 +678,7 @@ def _targets_md(res: dict) -> list[str]:
                    f"{'yes' if e['rejected_displaced'] == e['trials'] else 'no'} |")
     if "precision" in st:
         d, t = st["precision"]["default"], st["precision"]["tight"]
+        tm = {x["observation"]: x for x in st["precision"].get("timing", [])}
 
         def rate(study, kind, size):
             return next((r["flagged_rate"] for r in study["cases"] if r["kind"] == kind and r["size"] == size), None)
@@ -701,6 +703,13 @@ def _targets_md(res: dict) -> list[str]:
         row("precision: good-module rotation error max <= 0.25 deg", g["rotation_deg"].get("max"), lambda v: v <= 0.25,
             "{:.3f} deg")
         row("precision: achieved RMSE / bound <= 1.3", g["rmse_over_bound"], lambda v: v <= 1.3, "{:.2f}")
+        if "corners" in tm:
+            row("full-cube batch solve, corner model <= 50 ms", tm["corners"]["batch_ms"], lambda v: v <= 50, "{:.0f} ms")
+            row("SLAM step median, corner model <= 10 ms", tm["corners"]["step_median_ms"], lambda v: v <= 10,
+                "{:.1f} ms")
+        if "corner-info" in tm:
+            row("full-cube batch solve, corner-info model <= 50 ms", tm["corner-info"]["batch_ms"], lambda v: v <= 50,
+                "{:.1f} ms")
     if "verification" in st:
         v = st["verification"]
         beyond = [k for k in v["sf_graphslam"]["flag_rate"] if (k.startswith("offset") and float(k.split(':')[1]) >= 15)

@@ -30,7 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--uncalibrated", action="store_true",
                    help="trust the rig file's geometry exactly, as before rig calibration existed (for comparison "
                         "in benchmarks; a real rig is never that well known)")
-    b.add_argument("--observation", choices=("corners", "pose"), default=None,
+    b.add_argument("--observation", choices=("corners", "corner-info", "pose"), default=None,
                    help="how a tag sighting enters SF-GraphSLAM: its four corners' reprojection (default) or the "
                         "detector's single-view pose")
     b.add_argument("--tolerance", action="append", default=None, metavar="KIND=MM,DEG",
