@@ -38,11 +38,12 @@ import time
 from estimation.bench_common import save_figure
 
 STUDIES = ("deployable", "closeout_strut", "closeout_square", "partial_deploy", "borg_face1", "tag_elimination",
-           "borg_full", "borg_full_rendered", "verification", "precision")
+           "borg_full", "borg_full_rendered", "verification", "precision", "scaling")
+DEFAULT_STUDIES = STUDIES[:-1]   # scaling only when asked for: it is a machine's capacity, not the method's
 # (full, --quick) trial counts; the paper ran 50 (deployable) and 10 (close-outs)
 TRIALS = {"deployable": (50, 20), "closeout_strut": (20, 10), "closeout_square": (20, 10), "partial_deploy": (50, 20),
           "borg_face1": (20, 3), "tag_elimination": (50, 20), "borg_full": (20, 5), "borg_full_rendered": (5, 1),
-          "verification": (20, 4), "precision": (60, 12)}
+          "verification": (20, 4), "precision": (60, 12), "scaling": (1, 1)}
 PARTIAL_HEIGHT_M = 0.40
 DISPLACED_TAG, DISPLACEMENT_M = 17, (0.0, 0.3, 0.0)
 
@@ -582,7 +583,7 @@ def to_markdown(res: dict) -> str:
     lines.append("")
     studies = res["studies"]
     for study, methods in studies.items():
-        if study in ("verification", "precision"):
+        if study in ("verification", "precision", "scaling"):
             continue
         lines.append(f"#### {study}")
         lines.append("")
@@ -622,6 +623,12 @@ def to_markdown(res: dict) -> str:
                      f"Tag RMSE there: SF {v['sf_graphslam']['trans_rmse_m'] * 1000:.2f} mm, "
                      f"GraphSLAM {v['graphslam']['trans_rmse_m'] * 1000:.2f} mm.")
         lines.append("")
+    if "scaling" in studies:
+        from estimation.bench_scaling import markdown as scaling_md
+
+        lines.append("#### scaling: SF-GraphSLAM cost against structure size")
+        lines.append("")
+        lines.extend(scaling_md(studies["scaling"]))
     if "precision" in studies:
         from estimation.bench_precision import markdown as precision_md
 
@@ -710,6 +717,11 @@ def _targets_md(res: dict) -> list[str]:
         if "corner-info" in tm:
             row("full-cube batch solve, corner-info model <= 50 ms", tm["corner-info"]["batch_ms"], lambda v: v <= 50,
                 "{:.1f} ms")
+    if "scaling" in st:
+        b = st["scaling"]["growth"].get("corner-info", {}).get("batch_ms")
+        out.append(f"| scaling: batch solve grows no faster than tags^1.5 (N = 3..8, corner-info) | "
+                   f"tags^{b:.2f} | {'yes' if b is not None and b <= 1.5 else 'no'} |" if b is not None else
+                   "| scaling: batch solve growth | n/a | no |")
     if "verification" in st:
         v = st["verification"]
         beyond = [k for k in v["sf_graphslam"]["flag_rate"] if (k.startswith("offset") and float(k.split(':')[1]) >= 15)
@@ -732,7 +744,13 @@ def _plots(res: dict, out_dir: str) -> list[str]:
 
     files = []
     st = res["studies"]
-    names = [s for s in st if s != "verification"]
+    if "scaling" in st:
+        from estimation.bench_scaling import plot as scaling_plot
+
+        f = scaling_plot(st["scaling"], out_dir)
+        if f:
+            files.append(f)
+    names = [s for s in st if s not in ("verification", "precision", "scaling")]
     if names:
         methods = ["graphslam", "sf_graphslam", "paper_powell"]
         fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
@@ -797,7 +815,7 @@ def _json_safe(v):
 def run(args: argparse.Namespace) -> int:
     from lab.errors import UserError
 
-    only = list(args.only or STUDIES)
+    only = list(args.only or DEFAULT_STUDIES)
     if args.trials is not None and args.trials < 1:
         raise UserError(f"--trials must be at least 1, got {args.trials}")
     literal = args.literal_powell if args.literal_powell is not None else (0 if args.quick else 2)
@@ -828,6 +846,11 @@ def run(args: argparse.Namespace) -> int:
             res["studies"][study] = study_verification(n(study), args.seed)
         elif study == "precision":
             res["studies"][study] = study_precision(n(study), args.seed, args)
+        elif study == "scaling":
+            from estimation import bench_scaling
+
+            sizes = (3, 4, 5) if args.quick else bench_scaling.SIZES
+            res["studies"][study] = bench_scaling.study(sizes, seed=args.seed, max_corner_n=4 if args.quick else 5)
         res.setdefault("study_wall_s", {})[study] = time.perf_counter() - t0
     res["wall_s"] = time.perf_counter() - t_all
     md = to_markdown(res)
