@@ -359,9 +359,12 @@ class BorgProcedure:
         # priors with the true noise: a rig file that is exact (an ideal rig) is an exact prior; a
         # calibration's covariance is its own honest statement of how wrong it is
         exact_rig = self.rig_calibration is None and self.rig_survey_result is None and e == type(e)()
+        # the turntable tags: where a calibration located them, its covariance is what is known of
+        # them; from the design, they are as wrong as they were truly glued
+        calibrated = self.rig_calibration is not None or self.rig_survey_result is not None
         graph = slam.bound_graph(sigma_px, chain_noise=true_geometry.chain_noise,
                                  rig_prior_sigma=floor if exact_rig else None,
-                                 turntable_tag_sigma_m=max(e.turntable_tag_sigma_m, floor))
+                                 turntable_tag_sigma_m=None if calibrated else max(e.turntable_tag_sigma_m, floor))
         truth = gtsam.Values()
         rig = {AXIS: world.true_rig.world_T_axis, BASE: world.true_rig.world_T_base,
                MOUNT: world.true_rig.platform_T_camera}
