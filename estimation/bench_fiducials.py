@@ -56,38 +56,44 @@ def _camera():
     return K, np.asarray(c["dist"], dtype=float), int(c["width_px"]), int(c["height_px"]), float(c["pixel_noise"]), float(c["blur_px"])
 
 
+def tag_pose_on_ray(ray, distance_m: float, angle_rad: float, phi: float, psi: float):
+    """camera_T_tag for a tag `distance_m` along the unit `ray`, its face normal tilted `angle_rad` off
+    the line of sight towards direction `phi`, turned `psi` about its normal."""
+    import numpy as np
+
+    from lab.geometry import Pose3, Rot3
+
+    back = -np.asarray(ray, dtype=float)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(back[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    a = np.cross(back, helper)
+    a /= np.linalg.norm(a)
+    b = np.cross(back, a)
+    z = math.cos(angle_rad) * back + math.sin(angle_rad) * (math.cos(phi) * a + math.sin(phi) * b)
+    x0 = np.cross([0.0, 1.0, 0.0], z)
+    if np.linalg.norm(x0) < 1e-6:
+        x0 = np.cross([1.0, 0.0, 0.0], z)
+    x0 /= np.linalg.norm(x0)
+    y0 = np.cross(z, x0)
+    x = math.cos(psi) * x0 + math.sin(psi) * y0
+    y = np.cross(z, x)
+    return Pose3(Rot3(np.column_stack([x, y, z])), distance_m * np.asarray(ray, dtype=float))
+
+
 def random_tag_pose(rng, K, width: int, height: int, distance_m: float, size_m: float,
                     max_angle_rad: float = math.radians(MAX_VIEW_ANGLE_DEG)):
     """camera_T_tag for a tag at `distance_m` from the camera, somewhere in the image (kept a tag's
     width from the border), seen `angle` off its normal with a random turn about the normal."""
     import numpy as np
 
-    from lab.geometry import Pose3, Rot3
-
     margin = 1.2 * K[0, 0] * size_m / distance_m
     u = rng.uniform(margin, width - 1 - margin)
     v = rng.uniform(margin, height - 1 - margin)
     ray = np.linalg.solve(K, [u, v, 1.0])
     ray /= np.linalg.norm(ray)
-    t = distance_m * ray
-    # the face normal (tag z) points back at the camera, tilted by `angle` in a random direction
     angle = math.acos(rng.uniform(math.cos(max_angle_rad), 1.0))  # uniform over the spherical cap
-    back = -ray
-    helper = np.array([1.0, 0.0, 0.0]) if abs(back[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    a = np.cross(back, helper)
-    a /= np.linalg.norm(a)
-    b = np.cross(back, a)
     phi = rng.uniform(0, 2 * math.pi)
-    z = math.cos(angle) * back + math.sin(angle) * (math.cos(phi) * a + math.sin(phi) * b)
-    x0 = np.cross([0.0, 1.0, 0.0], z)
-    if np.linalg.norm(x0) < 1e-6:
-        x0 = np.cross([1.0, 0.0, 0.0], z)
-    x0 /= np.linalg.norm(x0)
-    y0 = np.cross(z, x0)
     psi = rng.uniform(0, 2 * math.pi)
-    x = math.cos(psi) * x0 + math.sin(psi) * y0
-    y = np.cross(z, x)
-    return Pose3(Rot3(np.column_stack([x, y, z])), t), angle
+    return tag_pose_on_ray(ray, distance_m, angle, phi, psi), angle
 
 
 def _ippe_solutions(K, dist, corners, size_m):

@@ -1,8 +1,18 @@
 """AprilTag 36h11 detection and single-view tag pose, with the pose ambiguity resolved and a
 measurement covariance.
 
-- Detection: OpenCV contrib's `ArucoDetector` with the AprilTag 36h11 dictionary, corners refined
-  to sub-pixel accuracy.
+- Detection: OpenCV contrib's `ArucoDetector` with the AprilTag 36h11 dictionary finds candidate
+  quads and their ids (accepting tags that touch the image border); each quad is then refined by
+  fitting its four edges (`estimation.tag_quads.fit_quads`: unbiased to a few thousandths of a pixel
+  on area-sampled images, lens distortion taken out) and checked: every edge fitted, straight (rms
+  of its row crossings), corners near the detector's quad, and the tag's 64 cells read back from
+  the refined quad within `max_bit_errors` of the id's pattern.  A tag failing a check is dropped:
+  its corners are not to be trusted at the accuracy the pose and the graph assume.
+- Corners: OpenCV's pixel convention (pixel centres at integer coordinates) and aruco's order:
+  the marker's top-left, top-right, bottom-right, bottom-left as OpenCV 4 draws it
+  (`cv2.aruco.generateImageMarker`, which the simulator renders), matching `tag_object_points`.
+  OpenCV 4's AprilTag markers are the AprilTag project's images turned 180 degrees, so on a tag
+  printed from those images corner 0 is the printed bottom-right (docs/fiducials.md).
 - Pose: `solvePnPGeneric(SOLVEPNP_IPPE_SQUARE)` returns both solutions of the planar ambiguity.
   The one with the lower reprojection error wins when it is clearly lower (ratio >= 
   `ambiguity_ratio`); otherwise, if a predicted pose is known (design + odometry), the solution
@@ -27,9 +37,11 @@ from typing import Callable, Mapping, Sequence
 import cv2
 import numpy as np
 
+from estimation.tag_quads import code_bits, fit_quads, read_bits
 from lab.geometry import Pose3, Rot3
 
-__all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points"]
+__all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges",
+           "apriltag_to_opencv_corners"]
 
 
 @dataclass(frozen=True)
@@ -54,6 +66,10 @@ class DetectorConfig:
     ambiguity_ratio: float = 2.0      # min error ratio for the reprojection test to decide alone
     min_side_px: float = 12.0         # smaller tags are too coarse to trust
     max_reprojection_px: float = 3.0  # worse fits are dropped (mis-detections, motion)
+    # the refined quad's checks (a tag failing one is dropped)
+    max_bit_errors: int = 2           # of the 64 cells (border included) read back from the refined quad
+    max_edge_rms_px: float = 0.3      # row crossings about each fitted edge: a straight, clean edge
+    max_corner_shift_px: float = 2.5  # from the detector's quad (or 15 % of the side, if larger)
 
 
 @lru_cache(maxsize=64)
@@ -65,63 +81,23 @@ def tag_object_points(size_m: float) -> np.ndarray:
     return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]], dtype=np.float64)
 
 
+def apriltag_to_opencv_corners(corners: np.ndarray) -> np.ndarray:
+    """Corners as the AprilTag 3 library reports them (`apriltag_detection.p`, e.g. pupil-apriltags'
+    `Detection.corners`) -> ours.  AprilTag puts pixel centres at half-integers (x + 0.5) and lists
+    the corners counter-clockwise from the bottom-left of the tag as AprilTag prints it; OpenCV 4's
+    marker of the same id is that image turned 180 degrees, so its top-left is AprilTag's
+    bottom-right: ours = p[[1, 0, 3, 2]] - 0.5."""
+    return np.asarray(corners, dtype=np.float64).reshape(4, 2)[[1, 0, 3, 2]] - 0.5
+
+
 def refine_corners_by_edges(grey: np.ndarray, corners: np.ndarray, samples: int = 12) -> np.ndarray | None:
-    """Sub-pixel corners as intersections of the black square's four edges.
-
-    aruco's refinements leave the corners of a dark square biased inward by a few tenths of a
-    pixel (measured on rendered tags with known corners: the square comes out ~0.4 px small, i.e.
-    ~1 % too far at 2 m).  AprilTag's own detector fits lines to the edges instead; so do we: along
-    each side, the 50 % crossing of the black-to-white profile is found at `samples` points, a line
-    is fitted through them, and adjacent lines are intersected.  None when an edge can't be read."""
-    from scipy.ndimage import map_coordinates
-
-    c = np.asarray(corners, dtype=np.float64)
-    side = float(np.mean(np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)))
-    cell = side / 8.0
-    reach = min(3.0, 0.7 * cell)
-    if reach < 0.9:
+    """Sub-pixel corners of one tag as intersections of its black square's four fitted edges (see
+    `estimation.tag_quads`); None when an edge could not be fitted.  `samples` is no longer used
+    (every image row or column crossing an edge is), kept for callers."""
+    fit = fit_quads(grey, np.asarray(corners, dtype=np.float64).reshape(1, 4, 2))
+    if not fit.edges_fitted.all() or np.max(np.linalg.norm(fit.corners[0] - corners, axis=1)) > 2.5:
         return None
-    s = np.arange(-reach, reach + 1e-9, 0.2)
-    t = np.linspace(0.2, 0.8, samples)
-    p0 = c
-    p1 = np.roll(c, -1, axis=0)
-    u = (p1 - p0) / np.linalg.norm(p1 - p0, axis=1, keepdims=True)
-    n = np.column_stack([u[:, 1], -u[:, 0]])           # outward for aruco's clockwise (y down) order
-    q = p0[:, None, :] + t[None, :, None] * (p1 - p0)[:, None, :]            # (4, samples, 2)
-    xy = q[:, :, None, :] + s[None, None, :, None] * n[:, None, None, :]     # (4, samples, S, 2)
-    prof = map_coordinates(grey, [xy[..., 1].ravel(), xy[..., 0].ravel()], order=1,
-                           mode="nearest").reshape(xy.shape[:3])
-    inner = prof[:, :, s < -0.5 * reach].mean(axis=2)
-    outer = prof[:, :, s > 0.5 * reach].mean(axis=2)
-    level = 0.5 * (inner + outer)
-    above = prof >= level[:, :, None]
-    k = np.argmax(above, axis=2)                                           # first sample at/over the level
-    ok = (outer - inner >= 20.0) & (k > 0) & above.any(axis=2)
-    kk = np.clip(k, 1, len(s) - 1)
-    lo = np.take_along_axis(prof, (kk - 1)[..., None], axis=2)[..., 0]
-    hi = np.take_along_axis(prof, kk[..., None], axis=2)[..., 0]
-    frac = np.where(hi > lo, (level - lo) / np.where(hi > lo, hi - lo, 1.0), 0.5)
-    offset = s[kk - 1] + frac * (s[kk] - s[kk - 1])
-    edge = q + offset[..., None] * n[:, None, :]
-    lines = []
-    for i in range(4):
-        P = edge[i][ok[i]]
-        if len(P) < 4:
-            return None
-        centre = P.mean(axis=0)
-        _, _, vt = np.linalg.svd(P - centre)
-        lines.append((centre, vt[0]))
-    out = np.empty((4, 2))
-    for i in range(4):
-        (a, da), (b, db) = lines[(i - 1) % 4], lines[i]
-        A = np.column_stack([da, -db])
-        if abs(np.linalg.det(A)) < 1e-6:
-            return None
-        t = np.linalg.solve(A, b - a)
-        out[i] = a + t[0] * da
-    if np.max(np.linalg.norm(out - c, axis=1)) > 2.0:   # refinement wandered off: keep aruco's
-        return None
-    return out
+    return fit.corners[0]
 
 
 class TagDetector:
@@ -135,34 +111,60 @@ class TagDetector:
         self.sizes = dict(sizes)
         self.config = config or DetectorConfig()
         params = cv2.aruco.DetectorParameters()
-        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-        params.cornerRefinementWinSize = 3
-        params.cornerRefinementMaxIterations = 50
-        params.cornerRefinementMinAccuracy = 0.01
+        # our edge fit replaces aruco's corner refinement (cornerSubPix reads a dark square ~0.4 px
+        # small); tags touching the image border are kept (its default drops them within 3 px)
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
+        params.minDistanceToBorder = 0
+        # aruco reads bits from its coarse quad and misses tags the AprilTag library reads; let it
+        # propose with up to its dictionary's 5 corrected bits and decide on our own read of the
+        # refined quad (`max_bit_errors`)
+        params.errorCorrectionRate = 1.0
         self._detector = cv2.aruco.ArucoDetector(
             cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
+        self._codes = code_bits(cv2.aruco.DICT_APRILTAG_36h11)
 
     def detect(self, image: np.ndarray,
                predict: Callable[[int], Pose3 | None] | None = None) -> list[Detection]:
         """Tags in `image` (BGR or grey).  `predict(tag_id)` may return the expected camera_T_tag
         (from the design and the camera's kinematics) to settle ambiguous poses."""
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        corners, ids, _ = self._detector.detectMarkers(grey)
-        grey_f = grey.astype(np.float32)
+        ids, quads = self.candidates(grey)
         out: list[Detection] = []
-        if ids is None:
+        if not ids:
             return out
-        for c, tid in zip(corners, ids.reshape(-1)):
-            tid = int(tid)
-            if tid not in self.sizes:
+        corners, ok = self.refine(grey, ids, quads)
+        for tid, c, good in zip(ids, corners, ok):
+            if not good:
                 continue
-            c = c.reshape(4, 2).astype(np.float64)
-            refined = refine_corners_by_edges(grey_f, c)
-            det = self._pose(tid, refined if refined is not None else c, predict)
+            det = self._pose(tid, c, predict)
             if det is not None:
                 out.append(det)
         out.sort(key=lambda d: d.tag_id)
         return out
+
+    def candidates(self, grey: np.ndarray) -> tuple[list[int], np.ndarray]:
+        """aruco's quads of our tags (ids of known size): (ids, (N, 4, 2) corners)."""
+        corners, ids, _ = self._detector.detectMarkers(grey)
+        if ids is None:
+            return [], np.zeros((0, 4, 2))
+        keep = [i for i, t in enumerate(ids.reshape(-1)) if int(t) in self.sizes]
+        return ([int(ids.reshape(-1)[i]) for i in keep],
+                np.array([corners[i].reshape(4, 2) for i in keep], dtype=np.float64).reshape(-1, 4, 2))
+
+    def refine(self, grey: np.ndarray, ids: Sequence[int], quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Edge-fitted corners of the quads and whether each passed every check."""
+        cfg = self.config
+        fit = fit_quads(grey, quads, (self.K, self.dist))
+        side = np.mean(np.linalg.norm(np.roll(fit.corners, -1, axis=1) - fit.corners, axis=2), axis=1)
+        shift = np.max(np.linalg.norm(fit.corners - quads, axis=2), axis=1)
+        bits, _ = read_bits(grey, fit.corners)
+        errors = np.array([np.count_nonzero(b != self._codes[t]) for b, t in zip(bits, ids)])
+        with np.errstate(invalid="ignore"):
+            ok = (fit.edges_fitted.all(axis=1)
+                  & (np.nanmax(np.where(fit.edges_fitted, fit.rms_px, np.inf), axis=1) <= cfg.max_edge_rms_px)
+                  & (shift <= np.maximum(cfg.max_corner_shift_px, 0.15 * side))
+                  & (errors <= cfg.max_bit_errors))
+        return fit.corners, ok
 
     def _pose(self, tid: int, corners: np.ndarray, predict) -> Detection | None:
         cfg = self.config

@@ -71,23 +71,25 @@ def test_tags_of_unknown_size_are_ignored():
 def test_a_prediction_settles_the_ippe_ambiguity(detector):
     # A small, nearly frontal tag far away: the two IPPE solutions fit the corners about equally
     # well (a mirror tilt), so the reprojection ratio alone cannot decide.
-    T = facing([0.1, 0.05, 3.0], tilt_deg=10)
+    T = facing([0.1, 0.05, 5.0], tilt_deg=5)
+    mirror = facing([0.1, 0.05, 5.0], tilt_deg=-5)
     flagged = 0
-    for seed in range(6):
+    for seed in range(8):
         img = render([(5, T)], seed)
         (plain,) = detector.detect(img)
         if plain.ambiguity_ratio < detector.config.ambiguity_ratio:
             assert plain.ambiguous  # undecided without a prediction, and it says so
             flagged += 1
         (helped,) = detector.detect(img, predict=lambda tid: T)
-        assert not helped.ambiguous
-        assert pose_error(helped.camera_T_tag, T)[1] < math.radians(4.0)
-        # a prediction near the mirror solution picks the mirror: the prediction is what decides
-        mirror = facing([0.1, 0.05, 3.0], tilt_deg=-10)
         (misled,) = detector.detect(img, predict=lambda tid: mirror)
-        if helped.ambiguity_ratio < detector.config.ambiguity_ratio:
+        assert not helped.ambiguous and not misled.ambiguous
+        if plain.ambiguous:
+            # the prediction decides: near the truth it picks the truth's side (within the noise of
+            # an 18 px tag's tilt), near the mirror the mirror's
+            assert pose_error(helped.camera_T_tag, T)[1] < pose_error(helped.camera_T_tag, mirror)[1]
+            assert pose_error(helped.camera_T_tag, T)[1] < math.radians(4.0)
             assert pose_error(misled.camera_T_tag, mirror)[1] < pose_error(misled.camera_T_tag, T)[1]
-    assert flagged >= 3  # the case really is ambiguous most of the time
+    assert flagged >= 3  # the case really is ambiguous often
 
 
 def test_covariance_grows_with_distance_and_viewing_angle(detector):

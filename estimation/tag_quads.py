@@ -1,0 +1,330 @@
+"""Sub-pixel tag quads: the black square's four edges located to a few hundredths of a pixel, and
+the tag's bits read back from the refined quad.
+
+Edge location (`fit_quads`).  A camera pixel reads the scene integrated over its area, after a
+blur that is symmetric about each point.  Across a straight dark-to-bright edge, the sum of a row
+of pixels normalised to 0 (dark) .. 1 (bright) is then exactly the length of the row that lies on
+the bright side: summing over pixels integrates the pixel box, and a box sums to the integral of
+what it samples whatever the edge's sub-pixel phase (its spectrum is zero at every multiple of the
+sampling frequency).  So along every image row (for edges steeper than 45 deg; columns for the
+others) that crosses an edge, a window of pixels centred on the edge gives the crossing as
+`window end - sum`, with no dependence on where the edge falls within a pixel and no model of the
+blur; a straight line fitted through the crossings of all usable rows is the edge, and adjacent
+edges intersect at the corners.  The 50 % crossing of an interpolated profile (what we used
+before) is biased by up to 0.1 px depending on that phase, and a frontal tag read that way looks
+tilted by a degree or more.
+
+What keeps other structure out of the windows: they reach at most one cell minus 1.5 px from the
+edge on either side (the black border cell inside, the white quiet zone outside), and rows within
+a window's reach of a corner are left out.  The dark and bright levels are each edge's mean of the
+windows' end pixels.  Rows whose window leaves the image are dropped (a tag touching the border
+keeps its other edges); an edge with fewer than `MIN_ROWS` usable rows keeps the line it came
+with.
+
+Bit reading (`read_bits`): the 8x8 cells sampled at their centres through the quad's homography,
+thresholded halfway between the dark and bright clusters (Otsu on the 64 samples), so a detection
+can be checked against the dictionary with a Hamming distance of our choosing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+__all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "MIN_ROWS"]
+
+CELLS = 8                 # AprilTag 36h11: 6x6 data cells inside a one-cell black border
+MIN_ROWS = 4              # an edge needs this many usable rows (or columns) to be refitted
+MIN_CONTRAST = 8.0        # grey levels between the dark and bright sides of a usable edge
+MAX_REACH_PX = 2.5        # window half-width across an edge (3 sigma of the sim's blur and pixel)
+MIN_REACH_PX = 1.0
+COARSE_SEARCH_PX = 3.0    # how far the first pass looks for an edge (a detector's corners can be 2-3 px off)
+COARSE_SEARCH_CELLS = 1.5
+COARSE_PASSES = 2
+EDGE_LEVELS_MIN_CELL_PX = 4.0   # smaller cells: an edge's dark/bright levels are its tag's
+
+
+@dataclass(frozen=True)
+class QuadFit:
+    corners: np.ndarray        # (N, 4, 2) refined corners, input order
+    edges_fitted: np.ndarray   # (N, 4) bool: edge i (corner i -> i+1) was refitted
+    rms_px: np.ndarray         # (N, 4) rms of the row crossings about each fitted line (nan if not fitted)
+
+
+def _lines_from_corners(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Edge i of each quad as (a point on it, unit direction), edge i from corner i to i+1."""
+    d = np.roll(q, -1, axis=1) - q
+    return q.copy(), d / np.linalg.norm(d, axis=2, keepdims=True)
+
+
+def _intersect(p: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Corner i = edge i-1 crossed with edge i."""
+    pa, da = np.roll(p, 1, axis=1), np.roll(d, 1, axis=1)
+    cross = da[..., 0] * d[..., 1] - da[..., 1] * d[..., 0]
+    w = p - pa
+    t = (w[..., 0] * d[..., 1] - w[..., 1] * d[..., 0]) / np.where(np.abs(cross) > 1e-9, cross, np.nan)
+    return pa + t[..., None] * da
+
+
+def _bilinear(g: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    H, W = g.shape
+    x = np.clip(x, 0.0, W - 1.001)
+    y = np.clip(y, 0.0, H - 1.001)
+    x0 = x.astype(np.int64)
+    y0 = y.astype(np.int64)
+    fx, fy = x - x0, y - y0
+    flat = g.ravel()
+    i = y0 * W + x0
+    return ((flat[i] * (1 - fx) + flat[i + 1] * fx) * (1 - fy)
+            + (flat[i + W] * (1 - fx) + flat[i + W + 1] * fx) * fy)
+
+
+def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None, coarse: bool
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One pass over every edge of every quad: each edge as a line (point, unit direction) in ideal
+    pinhole pixels (image pixels without `camera`), whether it was fitted, and the rms of its
+    crossings about it (px).  `coarse`: find each row's crossing as the steepest dark-to-bright step
+    within a wider search (COARSE_SEARCH_PX), to pull in a detector's corner that is pixels off."""
+    H, W = grey.shape
+    flat = grey.ravel()
+    N = len(q)
+    E = N * 4
+    p_in, d_in = _lines_from_corners(_undistort(q, camera))
+    seg = np.roll(q, -1, axis=1) - q                                  # (N, 4, 2)
+    length = np.linalg.norm(seg, axis=2)
+    u = seg / length[..., None]
+    n_out = np.stack([u[..., 1], -u[..., 0]], axis=2)                 # outward: clockwise quads, y down
+    # one cell across each edge, measured along the adjacent edges
+    prev_seg, next_seg = np.roll(seg, 1, axis=1), np.roll(seg, -1, axis=1)
+    cell = np.minimum(np.abs(np.sum(prev_seg * n_out, axis=2)), np.abs(np.sum(next_seg * n_out, axis=2))) / CELLS
+    # how far a window reaches across the edge: its end pixels (which see half a pixel farther)
+    # must stay clear of the next cell's edge and its blur
+    reach = np.clip(cell - 2.5, MIN_REACH_PX, MAX_REACH_PX)
+    if coarse:   # the inner pattern's and the quiet zone's edges step the other way: no confusion
+        reach = np.clip(COARSE_SEARCH_CELLS * cell, MIN_REACH_PX, COARSE_SEARCH_PX)
+    cross2 = lambda a, b: a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]  # noqa: E731
+    sin_end = np.maximum(np.minimum(np.abs(cross2(np.roll(u, 1, axis=1), u)), np.abs(cross2(u, np.roll(u, -1, axis=1)))), 0.3)
+
+    rows_axis = np.abs(u[..., 1]) >= np.abs(u[..., 0])                # steep edges: scan image rows
+    # scan coordinates: s along the scan (x for rows, y for columns), r the row/column index
+    s_idx = np.where(rows_axis, 0, 1)
+    r_idx = 1 - s_idx
+    take = lambda a, i: np.take_along_axis(a, i[..., None], axis=2)[..., 0]  # noqa: E731
+    q1 = np.roll(q, -1, axis=1)
+    ps, pr, qs, qr = take(q, s_idx), take(q, r_idx), take(q1, s_idx), take(q1, r_idx)
+    ns = take(n_out, s_idx)                                            # normal's scan component, |ns| >= 0.707
+    A = reach / np.abs(ns)                                             # window half-width along the scan
+    # rows kept clear of the corners: the window's reach, the blur of the adjacent edge, and a
+    # little more on long edges (printed corners are rarely sharp)
+    margin = (reach + 2.5) / sin_end + 0.02 * length                  # px along the edge
+    ur = np.abs(take(u, r_idx))
+    r_lo = np.ceil(np.minimum(pr, qr) + margin * ur)
+    r_hi = np.floor(np.maximum(pr, qr) - margin * ur)
+    count = np.maximum(r_hi - r_lo + 1, 0).astype(np.int64).ravel()
+    edge_of = np.repeat(np.arange(E), count)
+    if edge_of.size == 0:
+        return p_in, d_in, np.zeros((N, 4), bool), np.full((N, 4), np.nan)
+    start = np.repeat(np.cumsum(count) - count, count)
+    r = r_lo.ravel()[edge_of] + (np.arange(edge_of.size) - start)
+    slope = ((qs - ps) / np.where(qr != pr, qr - pr, np.nan)).ravel()
+    s_line = ps.ravel()[edge_of] + (r - pr.ravel()[edge_of]) * slope[edge_of]
+    Ae = A.ravel()[edge_of]
+    sgn = np.sign(ns.ravel())[edge_of]
+    centre = np.rint(np.nan_to_num(s_line))
+    m_max = int(np.ceil(A.max() + 0.5))
+    k = np.arange(-m_max, m_max + 1)
+    s_pix = centre[:, None] + k[None, :]                               # (rows, 2 m_max + 1)
+    # each pixel's overlap with the window [s_line - A, s_line + A]: a window symmetric about the
+    # line, so truncated tails of the blur cancel and the passes converge on the edge
+    lo = np.maximum(s_pix - 0.5, (s_line - Ae)[:, None])
+    hi = np.minimum(s_pix + 0.5, (s_line + Ae)[:, None])
+    wgt = np.clip(hi - lo, 0.0, 1.0)
+    use_rows = rows_axis.ravel()[edge_of][:, None]
+    ri = r.astype(np.int64)[:, None]
+    si = s_pix.astype(np.int64)
+    x = np.where(use_rows, si, ri)
+    y = np.where(use_rows, ri, si)
+    inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
+    row_ok = np.all(inside | (wgt == 0), axis=1) & np.isfinite(s_line)
+    vals = flat[np.clip(y, 0, H - 1) * W + np.clip(x, 0, W - 1)].astype(np.float64)
+    # dark and bright levels of each edge: half a cell inside (the black border) and outside (the
+    # quiet zone) along the normal, averaged over the edge's rows
+    n_img = n_out.reshape(-1, 2)[edge_of]
+    on_line = np.where(use_rows, np.column_stack([s_line, r]), np.column_stack([r, s_line]))
+    half_cell = (0.5 * cell).ravel()[edge_of][:, None]
+    p_dark = on_line - half_cell * n_img
+    p_bright = on_line + half_cell * n_img
+    in_img = lambda p: (p[:, 0] >= 0) & (p[:, 0] <= W - 1) & (p[:, 1] >= 0) & (p[:, 1] <= H - 1)  # noqa: E731
+    lvl_ok = (in_img(p_dark) & in_img(p_bright) & np.isfinite(s_line)).astype(np.float64)
+    n_lvl = np.bincount(edge_of, weights=lvl_ok, minlength=E)
+    sum_dark = np.bincount(edge_of, lvl_ok * _bilinear(grey, p_dark[:, 0], p_dark[:, 1]), E)
+    sum_bright = np.bincount(edge_of, lvl_ok * _bilinear(grey, p_bright[:, 0], p_bright[:, 1]), E)
+    # small cells put those samples inside the blur of the edge itself, and an edge along the image
+    # border has none: such edges take their tag's levels, the two clusters of its cells' centres
+    own = (n_lvl >= MIN_ROWS) & (cell.ravel() >= EDGE_LEVELS_MIN_CELL_PX)
+    tag_dark, tag_bright = _tag_levels(grey, q)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dark = np.where(own, sum_dark / n_lvl, np.repeat(tag_dark, 4))
+        bright = np.where(own, sum_bright / n_lvl, np.repeat(tag_bright, 4))
+    contrast = bright - dark
+    with np.errstate(invalid="ignore", divide="ignore"):
+        fn = (vals - dark[edge_of, None]) / contrast[edge_of, None]
+    if coarse:
+        step = sgn[:, None] * np.diff(fn, axis=1)                      # dark-to-bright steps, at k + 0.5
+        step = np.where((wgt[:, 1:] > 0) & (wgt[:, :-1] > 0), step, -np.inf)
+        j = np.clip(np.argmax(step, axis=1), 1, step.shape[1] - 2)
+        rows_i = np.arange(len(j))
+        y0, y1, y2 = step[rows_i, j - 1], step[rows_i, j], step[rows_i, j + 1]
+        y0 = np.where(np.isfinite(y0), y0, y1)
+        y2 = np.where(np.isfinite(y2), y2, y1)
+        den = y0 - 2 * y1 + y2
+        frac = np.where(den < -1e-9, 0.5 * (y0 - y2) / np.where(den < -1e-9, den, 1.0), 0.0)
+        cross = s_pix[rows_i, j] + 0.5 + np.clip(frac, -0.5, 0.5)
+        row_ok &= y1 >= 0.25
+    else:
+        bright_len = np.sum(wgt * fn, axis=1)                          # px of the window on the bright side
+        cross = np.where(sgn > 0, s_line + Ae - bright_len, s_line - Ae + bright_len)
+    row_ok &= np.abs(cross - s_line) <= Ae                             # the crossing lies within its window
+    row_ok &= (contrast >= MIN_CONTRAST)[edge_of]
+
+    # the crossings as image points, then straight lines through them where straight lines are
+    # straight: in the ideal pinhole image when the lens is known
+    pts = np.where(use_rows, np.column_stack([cross, r]), np.column_stack([r, cross]))
+    pts = _undistort(np.nan_to_num(pts), camera)
+    X, Y = pts[:, 0], pts[:, 1]
+    keep = row_ok.copy()
+    for _ in range(2):                                                 # fit, drop crossings > 3 rms off, refit
+        w = keep.astype(np.float64)
+        S1 = np.bincount(edge_of, w, E)
+        fitted = S1 >= MIN_ROWS
+        S1 = np.maximum(S1, 1.0)
+        mx = np.bincount(edge_of, w * X, E) / S1
+        my = np.bincount(edge_of, w * Y, E) / S1
+        dx, dy = X - mx[edge_of], Y - my[edge_of]
+        cxx = np.bincount(edge_of, w * dx * dx, E)
+        cxy = np.bincount(edge_of, w * dx * dy, E)
+        cyy = np.bincount(edge_of, w * dy * dy, E)
+        theta = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)                 # the line's direction (total least squares)
+        res = -dx * np.sin(theta)[edge_of] + dy * np.cos(theta)[edge_of]
+        rms = np.sqrt(np.bincount(edge_of, w * res * res, E) / S1)
+        keep = row_ok & (np.abs(res) <= np.maximum(3.0 * rms[edge_of], 0.1))
+    pt = np.column_stack([mx, my])
+    dr = np.column_stack([np.cos(theta), np.sin(theta)])
+    dr *= np.where(np.sum(dr * d_in.reshape(-1, 2), axis=1) < 0, -1.0, 1.0)[:, None]   # keep corner i -> i+1
+    fitted = fitted.reshape(N, 4)
+    p = np.where(fitted[..., None], pt.reshape(N, 4, 2), p_in)
+    d = np.where(fitted[..., None], dr.reshape(N, 4, 2), d_in)
+    return p, d, fitted, np.where(fitted, rms.reshape(N, 4), np.nan)
+
+
+def _undistort(pts: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """Image pixels -> ideal pinhole pixels of the same camera (unchanged without a camera)."""
+    if camera is None or not np.any(camera[1]) or pts.size == 0:
+        return np.asarray(pts, dtype=np.float64)
+    K, dist = camera
+    shape = pts.shape
+    out = cv2.undistortPointsIter(np.asarray(pts, np.float64).reshape(-1, 1, 2), K, dist, None, K,
+                                  (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-9))
+    return out.reshape(shape)
+
+
+def _distort(pts: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """Ideal pinhole pixels -> image pixels."""
+    if camera is None or not np.any(camera[1]) or pts.size == 0:
+        return pts
+    K, dist = camera
+    shape = pts.shape
+    xy = (np.asarray(pts, np.float64).reshape(-1, 2) - K[:2, 2]) / np.diag(K)[:2]
+    obj = np.column_stack([xy, np.ones(len(xy))])
+    out, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, dist)
+    return out.reshape(shape)
+
+
+def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None = None,
+              passes: int = 2) -> QuadFit:
+    """Refine the quads (N, 4, 2; corners clockwise in the image as aruco returns them) of tags in a
+    grey image (2-D, any numeric type) by fitting each edge: a coarse pass, then `passes` fine ones;
+    see the module's docstring.  With
+    `camera` = (K, dist) the edges are fitted as straight lines in the undistorted image (lens
+    distortion bends them by tenths of a pixel over a near tag)."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    g = np.ascontiguousarray(grey, dtype=np.float32)
+    fitted = np.zeros(q.shape[:2], bool)
+    rms = np.full(q.shape[:2], np.nan)
+    cur = q
+    fitted_any = np.zeros(q.shape[:2], bool)
+    for coarse in [True] * COARSE_PASSES + [False] * passes:
+        if len(cur) == 0:
+            break
+        p, d, fitted, rms_pass = _fit_pass(g, cur, camera, coarse)
+        rms = np.where(fitted, rms_pass, rms)
+        fitted_any |= fitted
+        nxt = _distort(_intersect(p, d), camera)
+        # a quad whose lines no longer meet (degenerate fit) keeps what it had
+        cur = np.where(np.all(np.isfinite(nxt), axis=(1, 2))[:, None, None], nxt, cur)
+    fitted = fitted_any
+    return QuadFit(cur, fitted, rms)
+
+
+@lru_cache(maxsize=4)
+def code_bits(dictionary_id: int = cv2.aruco.DICT_APRILTAG_36h11) -> np.ndarray:
+    """(n_ids, 8, 8) bool: every marker of an OpenCV dictionary as printed, border included, True
+    where the cell is white, in the dictionary's own orientation (corner 0 at top-left)."""
+    d = cv2.aruco.getPredefinedDictionary(dictionary_id)
+    n = d.bytesList.shape[0]
+    side = d.markerSize + 2
+    return np.stack([cv2.aruco.generateImageMarker(d, i, side, borderBits=1) > 127 for i in range(n)])
+
+
+def _cell_samples(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """(N, 64) grey levels at the 8x8 cell centres of each quad (corner 0 = the marker's top-left,
+    row by row), bilinear."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    c = (np.arange(CELLS) + 0.5) / CELLS
+    gu, gv = np.meshgrid(c, c)                                         # u right, v down
+    uv1 = np.column_stack([gu.ravel(), gv.ravel(), np.ones(CELLS * CELLS)])
+    unit = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], np.float32)
+    pts = np.empty((len(q), CELLS * CELLS, 2))
+    for i in range(len(q)):
+        h = uv1 @ cv2.getPerspectiveTransform(unit, q[i].astype(np.float32)).T
+        pts[i] = h[:, :2] / h[:, 2:]
+    g = np.asarray(grey, dtype=np.float32)
+    return _bilinear(g, pts[..., 0], pts[..., 1])
+
+
+def _otsu(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of `v`: (threshold, dark cluster mean, bright cluster mean), the split maximising
+    the between-cluster variance."""
+    n = v.shape[1]
+    srt = np.sort(v, axis=1)
+    k = np.arange(1, n)
+    csum = np.cumsum(srt, axis=1)[:, :-1]
+    total = csum[:, -1:] + srt[:, -1:]
+    m0 = csum / k
+    m1 = (total - csum) / (n - k)
+    best = np.argmax(k * (n - k) * (m1 - m0) ** 2, axis=1)
+    i = np.arange(len(v))
+    return 0.5 * (srt[i, best] + srt[i, best + 1]), m0[i, best], m1[i, best]
+
+
+def _tag_levels(grey: np.ndarray, quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each tag's black and white: the means of the dark and bright clusters of its cell centres."""
+    if len(quads) == 0:
+        return np.zeros(0), np.zeros(0)
+    _, dark, bright = _otsu(_cell_samples(grey, quads))
+    return dark, bright
+
+
+def read_bits(grey: np.ndarray, quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sample the 8x8 cells of each quad (N, 4, 2; corner 0 = the marker's top-left) at their
+    centres and threshold them halfway between the dark and bright clusters: (bits (N, 8, 8) bool,
+    True = white; contrast (N,) grey levels between the clusters)."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    if len(q) == 0:
+        return np.zeros((0, CELLS, CELLS), bool), np.zeros(0)
+    v = _cell_samples(grey, q)
+    thr, dark, bright = _otsu(v)
+    return (v > thr[:, None]).reshape(len(q), CELLS, CELLS), bright - dark
