@@ -37,7 +37,7 @@ from typing import Callable, Mapping, Sequence
 import cv2
 import numpy as np
 
-from estimation.tag_quads import code_bits, fit_quads, read_bits
+from estimation.tag_quads import code_bits, fit_quads, identify, read_bits
 from lab.geometry import Pose3, Rot3
 
 __all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges",
@@ -69,7 +69,8 @@ class DetectorConfig:
     # the refined quad's checks (a tag failing one is dropped)
     max_bit_errors: int = 2           # of the 64 cells (border included) read back from the refined quad
     max_edge_rms_px: float = 0.3      # row crossings about each fitted edge: a straight, clean edge
-    max_corner_shift_px: float = 2.5  # from the detector's quad (or 15 % of the side, if larger)
+    max_corner_shift_px: float = 3.5  # from aruco's quad (or 20 % of the side, if larger): its
+                                      # unrefined corners are up to ~3 px off on small photographed tags
 
 
 @lru_cache(maxsize=64)
@@ -100,6 +101,12 @@ def refine_corners_by_edges(grey: np.ndarray, corners: np.ndarray, samples: int 
     return fit.corners[0]
 
 
+def _overlaps(quad: np.ndarray, others: np.ndarray) -> bool:
+    """Whether `quad`'s centre lies inside any of `others` (N, 4, 2)."""
+    c = quad.mean(axis=0)
+    return any(cv2.pointPolygonTest(o.astype(np.float32), (float(c[0]), float(c[1])), False) >= 0 for o in others)
+
+
 class TagDetector:
     """Detects AprilTag 36h11 tags and estimates their poses.  `sizes` gives the black-square
     edge per tag id (unknown ids are ignored: they are not ours)."""
@@ -122,49 +129,66 @@ class TagDetector:
         self._detector = cv2.aruco.ArucoDetector(
             cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
         self._codes = code_bits(cv2.aruco.DICT_APRILTAG_36h11)
+        self._allowed = np.array(sorted(t for t in self.sizes if 0 <= t < len(self._codes)), dtype=np.int64)
 
     def detect(self, image: np.ndarray,
                predict: Callable[[int], Pose3 | None] | None = None) -> list[Detection]:
         """Tags in `image` (BGR or grey).  `predict(tag_id)` may return the expected camera_T_tag
         (from the design and the camera's kinematics) to settle ambiguous poses."""
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        ids, quads = self.candidates(grey)
         out: list[Detection] = []
-        if not ids:
-            return out
-        corners, ok = self.refine(grey, ids, quads)
-        for tid, c, good in zip(ids, corners, ok):
-            if not good:
-                continue
+        for tid, c in zip(*self.find(grey)):
             det = self._pose(tid, c, predict)
             if det is not None:
                 out.append(det)
         out.sort(key=lambda d: d.tag_id)
         return out
 
-    def candidates(self, grey: np.ndarray) -> tuple[list[int], np.ndarray]:
-        """aruco's quads of our tags (ids of known size): (ids, (N, 4, 2) corners)."""
-        corners, ids, _ = self._detector.detectMarkers(grey)
-        if ids is None:
-            return [], np.zeros((0, 4, 2))
-        keep = [i for i, t in enumerate(ids.reshape(-1)) if int(t) in self.sizes]
-        return ([int(ids.reshape(-1)[i]) for i in keep],
-                np.array([corners[i].reshape(4, 2) for i in keep], dtype=np.float64).reshape(-1, 4, 2))
+    def find(self, grey: np.ndarray) -> tuple[list[int], np.ndarray]:
+        """Our tags' ids and refined corners (N, 4, 2) in a grey image, every check passed, before
+        any pose: aruco's decoded quads, and the quads it found but could not decode that our own
+        read of the refined quad identifies."""
+        cfg = self.config
+        corners, ids, rejected = self._detector.detectMarkers(grey)
+        ids = [] if ids is None else [int(t) for t in ids.reshape(-1)]
+        mine = [i for i, t in enumerate(ids) if t in self.sizes]
+        quads = np.array([corners[i].reshape(4, 2) for i in mine], dtype=np.float64).reshape(-1, 4, 2)
+        ids = [ids[i] for i in mine]
+        refined, ok = self.refine(grey, ids, quads)
+        found_ids = [t for t, good in zip(ids, ok) if good]
+        found = [refined[ok]]
+        # aruco reads the bits off its own coarse quad and gives up on small, blurred or
+        # compressed tags that the AprilTag library reads; the refined quad reads them better
+        rej = np.array([r.reshape(4, 2) for r in rejected], dtype=np.float64).reshape(-1, 4, 2)
+        if len(rej) and self._allowed.size:
+            sides = np.linalg.norm(np.roll(rej, -1, axis=1) - rej, axis=2)
+            fresh = np.array([not _overlaps(r, quads) for r in rej], bool)
+            rej = rej[(sides.min(axis=1) >= cfg.min_side_px) & fresh]
+        if len(rej) and self._allowed.size:
+            fit = fit_quads(grey, rej, (self.K, self.dist))
+            good = self._fit_ok(fit, rej)
+            tid, rolled, errors = identify(grey, fit.corners[good], self._codes, self._allowed)
+            keep = errors <= cfg.max_bit_errors
+            found_ids += [int(t) for t in tid[keep]]
+            found.append(rolled[keep])
+        return found_ids, np.concatenate(found).reshape(-1, 4, 2)
 
     def refine(self, grey: np.ndarray, ids: Sequence[int], quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Edge-fitted corners of the quads and whether each passed every check."""
-        cfg = self.config
+        """Edge-fitted corners of aruco's decoded quads and whether each passed every check."""
         fit = fit_quads(grey, quads, (self.K, self.dist))
+        bits, _ = read_bits(grey, fit.corners)
+        errors = np.array([np.count_nonzero(b != self._codes[t]) for b, t in zip(bits, ids)], dtype=int)
+        return fit.corners, self._fit_ok(fit, quads) & (errors <= self.config.max_bit_errors)
+
+    def _fit_ok(self, fit, quads: np.ndarray) -> np.ndarray:
+        """Every edge fitted and straight, and no corner far from where the detector put it."""
+        cfg = self.config
         side = np.mean(np.linalg.norm(np.roll(fit.corners, -1, axis=1) - fit.corners, axis=2), axis=1)
         shift = np.max(np.linalg.norm(fit.corners - quads, axis=2), axis=1)
-        bits, _ = read_bits(grey, fit.corners)
-        errors = np.array([np.count_nonzero(b != self._codes[t]) for b, t in zip(bits, ids)])
         with np.errstate(invalid="ignore"):
-            ok = (fit.edges_fitted.all(axis=1)
-                  & (np.nanmax(np.where(fit.edges_fitted, fit.rms_px, np.inf), axis=1) <= cfg.max_edge_rms_px)
-                  & (shift <= np.maximum(cfg.max_corner_shift_px, 0.15 * side))
-                  & (errors <= cfg.max_bit_errors))
-        return fit.corners, ok
+            return (fit.edges_fitted.all(axis=1)
+                    & (np.nanmax(np.where(fit.edges_fitted, fit.rms_px, np.inf), axis=1) <= cfg.max_edge_rms_px)
+                    & (shift <= np.maximum(cfg.max_corner_shift_px, 0.2 * side)))
 
     def _pose(self, tid: int, corners: np.ndarray, predict) -> Detection | None:
         cfg = self.config

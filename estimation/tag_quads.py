@@ -34,16 +34,17 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-__all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "MIN_ROWS"]
+__all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "identify", "MIN_ROWS"]
 
 CELLS = 8                 # AprilTag 36h11: 6x6 data cells inside a one-cell black border
-MIN_ROWS = 4              # an edge needs this many usable rows (or columns) to be refitted
+MIN_ROWS = 3              # an edge needs this many usable rows (or columns) to be refitted
 MIN_CONTRAST = 8.0        # grey levels between the dark and bright sides of a usable edge
 MAX_REACH_PX = 2.5        # window half-width across an edge (3 sigma of the sim's blur and pixel)
 MIN_REACH_PX = 1.0
 COARSE_SEARCH_PX = 3.0    # how far the first pass looks for an edge (a detector's corners can be 2-3 px off)
-COARSE_SEARCH_CELLS = 1.5
-COARSE_PASSES = 2
+COARSE_SEARCH_CELLS = 1.5  # ... or 1.5 cells: the inner pattern's and quiet zone's edges step the other way
+COARSE_PASSES = 1
+CONVERGED_PX = 0.1        # a fine pass that moved no corner more than this ends a quad's refinement (it contracts the error 10-1000x)
 EDGE_LEVELS_MIN_CELL_PX = 4.0   # smaller cells: an edge's dark/bright levels are its tag's
 
 
@@ -52,6 +53,7 @@ class QuadFit:
     corners: np.ndarray        # (N, 4, 2) refined corners, input order
     edges_fitted: np.ndarray   # (N, 4) bool: edge i (corner i -> i+1) was refitted
     rms_px: np.ndarray         # (N, 4) rms of the row crossings about each fitted line (nan if not fitted)
+    corner_sigma_px: np.ndarray  # (N, 4) each corner's standard error from its two lines' fits (nan: unfitted)
 
 
 def _lines_from_corners(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -119,7 +121,7 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     A = reach / np.abs(ns)                                             # window half-width along the scan
     # rows kept clear of the corners: the window's reach, the blur of the adjacent edge, and a
     # little more on long edges (printed corners are rarely sharp)
-    margin = (reach + 2.5) / sin_end + 0.02 * length                  # px along the edge
+    margin = (reach + 1.5) / sin_end + 0.02 * length                  # px along the edge
     ur = np.abs(take(u, r_idx))
     r_lo = np.ceil(np.minimum(pr, qr) + margin * ur)
     r_hi = np.floor(np.maximum(pr, qr) - margin * ur)
@@ -165,7 +167,10 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     # small cells put those samples inside the blur of the edge itself, and an edge along the image
     # border has none: such edges take their tag's levels, the two clusters of its cells' centres
     own = (n_lvl >= MIN_ROWS) & (cell.ravel() >= EDGE_LEVELS_MIN_CELL_PX)
-    tag_dark, tag_bright = _tag_levels(grey, q)
+    tag_dark, tag_bright = np.full(N, np.nan), np.full(N, np.nan)
+    need = ~own.reshape(N, 4).all(axis=1)
+    if need.any():
+        tag_dark[need], tag_bright[need] = _tag_levels(grey, q[need])
     with np.errstate(invalid="ignore", divide="ignore"):
         dark = np.where(own, sum_dark / n_lvl, np.repeat(tag_dark, 4))
         bright = np.where(own, sum_bright / n_lvl, np.repeat(tag_bright, 4))
@@ -193,7 +198,7 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     # the crossings as image points, then straight lines through them where straight lines are
     # straight: in the ideal pinhole image when the lens is known
     pts = np.where(use_rows, np.column_stack([cross, r]), np.column_stack([r, cross]))
-    pts = _undistort(np.nan_to_num(pts), camera)
+    pts = _undistort(np.nan_to_num(pts), camera, (H, W))
     X, Y = pts[:, 0], pts[:, 1]
     keep = row_ok.copy()
     for _ in range(2):                                                 # fit, drop crossings > 3 rms off, refit
@@ -217,18 +222,72 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     fitted = fitted.reshape(N, 4)
     p = np.where(fitted[..., None], pt.reshape(N, 4, 2), p_in)
     d = np.where(fitted[..., None], dr.reshape(N, 4, 2), d_in)
-    return p, d, fitted, np.where(fitted, rms.reshape(N, 4), np.nan)
+    # the fitted line's standard error at distance T from its centroid is r sqrt(1/n + T^2 / (n var_t))
+    # (r: the crossings' scatter with 2 dof spent, var_t: their spread along the line)
+    t_along = dx * np.cos(theta)[edge_of] + dy * np.sin(theta)[edge_of]
+    var_t = np.bincount(edge_of, w * t_along * t_along, E) / S1
+    n = np.bincount(edge_of, w, E)
+    r_eff = np.maximum(rms * np.sqrt(n / np.maximum(n - 2, 1)), 0.02)
+    stats = np.stack([r_eff, n, var_t], axis=1).reshape(N, 4, 3)
+    return p, d, fitted, np.where(fitted, rms.reshape(N, 4), np.nan), stats
 
 
-def _undistort(pts: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
-    """Image pixels -> ideal pinhole pixels of the same camera (unchanged without a camera)."""
-    if camera is None or not np.any(camera[1]) or pts.size == 0:
+def _corner_sigma(p: np.ndarray, d: np.ndarray, corners: np.ndarray, stats: np.ndarray) -> np.ndarray:
+    """(N, 4) standard error of each corner: its two lines' errors at the corner, over the sine of
+    the angle between them."""
+    r, n, var_t = stats[..., 0], np.maximum(stats[..., 1], 1), np.maximum(stats[..., 2], 1e-9)
+
+    idx = np.arange(4)
+    prev = (idx - 1) % 4
+    s_this = r * np.sqrt(1.0 / n + np.sum((corners - p) * d, axis=-1) ** 2 / (n * var_t))
+    s_prev = (r[:, prev] * np.sqrt(1.0 / n[:, prev] + np.sum((corners - p[:, prev]) * d[:, prev], axis=-1) ** 2
+                                   / (n[:, prev] * var_t[:, prev])))
+    sin = np.abs(d[:, prev, 0] * d[..., 1] - d[:, prev, 1] * d[..., 0])
+    return np.sqrt(s_this ** 2 + s_prev ** 2) / np.maximum(sin, 0.2)
+
+
+@lru_cache(maxsize=4)
+def _undistort_map(K_key: bytes, dist_key: bytes, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Ideal pinhole x and y of every pixel centre of a (height, width) image, each flattened:
+    interpolating them is faster than undistorting each point and exact to ~1e-5 px."""
+    K = np.frombuffer(K_key, dtype=np.float64).reshape(3, 3)
+    dist = np.frombuffer(dist_key, dtype=np.float64)
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    pix = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
+    out = cv2.undistortPointsIter(pix, K, dist, None, K, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-9))
+    out = out.reshape(-1, 2)
+    return np.ascontiguousarray(out[:, 0]), np.ascontiguousarray(out[:, 1])
+
+
+def _undistort(pts: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None,
+               shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Image pixels -> ideal pinhole pixels of the same camera (unchanged without a camera).  With
+    the image's `shape`, through the cached map of the whole frame."""
+    if camera is None or not np.any(camera[1]) or np.size(pts) == 0:
         return np.asarray(pts, dtype=np.float64)
     K, dist = camera
-    shape = pts.shape
-    out = cv2.undistortPointsIter(np.asarray(pts, np.float64).reshape(-1, 1, 2), K, dist, None, K,
+    K = np.ascontiguousarray(K, dtype=np.float64)
+    dist = np.ascontiguousarray(dist, dtype=np.float64).ravel()
+    p = np.asarray(pts, np.float64).reshape(-1, 2)
+    if shape is not None:
+        H, W = shape
+        inside = (p[:, 0] >= 0) & (p[:, 0] <= W - 1) & (p[:, 1] >= 0) & (p[:, 1] <= H - 1)
+        if inside.all():
+            mx, my = _undistort_map(K.tobytes(), dist.tobytes(), W, H)
+            x0 = np.minimum(p[:, 0].astype(np.int64), W - 2)
+            y0 = np.minimum(p[:, 1].astype(np.int64), H - 2)
+            fx = p[:, 0] - x0
+            fy = p[:, 1] - y0
+            i = y0 * W + x0
+            out = np.empty_like(p)
+            for c, m in enumerate((mx, my)):
+                a, b = np.take(m, i), np.take(m, i + 1)
+                cc, d = np.take(m, i + W), np.take(m, i + W + 1)
+                out[:, c] = (a + (b - a) * fx) * (1 - fy) + (cc + (d - cc) * fx) * fy
+            return out.reshape(np.shape(pts))
+    out = cv2.undistortPointsIter(p.reshape(-1, 1, 2), K, dist, None, K,
                                   (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-9))
-    return out.reshape(shape)
+    return out.reshape(np.shape(pts))
 
 
 def _distort(pts: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
@@ -254,19 +313,31 @@ def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.
     g = np.ascontiguousarray(grey, dtype=np.float32)
     fitted = np.zeros(q.shape[:2], bool)
     rms = np.full(q.shape[:2], np.nan)
-    cur = q
+    cur = q.copy()
     fitted_any = np.zeros(q.shape[:2], bool)
+    sigma = np.full(q.shape[:2], np.nan)
+    active = np.ones(len(q), bool)
     for coarse in [True] * COARSE_PASSES + [False] * passes:
-        if len(cur) == 0:
+        if not active.any():
             break
-        p, d, fitted, rms_pass = _fit_pass(g, cur, camera, coarse)
-        rms = np.where(fitted, rms_pass, rms)
-        fitted_any |= fitted
-        nxt = _distort(_intersect(p, d), camera)
+        p, d, fitted, rms_pass, stats = _fit_pass(g, cur[active], camera, coarse)
+        rms[active] = np.where(fitted, rms_pass, rms[active])
+        fitted_any[active] |= fitted
+        ideal = _intersect(p, d)
+        nxt = _distort(ideal, camera)
         # a quad whose lines no longer meet (degenerate fit) keeps what it had
-        cur = np.where(np.all(np.isfinite(nxt), axis=(1, 2))[:, None, None], nxt, cur)
+        meet = np.all(np.isfinite(nxt), axis=(1, 2))
+        nxt = np.where(meet[:, None, None], nxt, cur[active])
+        all_fit = fitted.all(axis=1) & meet
+        s = np.full(fitted.shape, np.nan)
+        s[all_fit] = _corner_sigma(p[all_fit], d[all_fit], ideal[all_fit], stats[all_fit])
+        sigma[active] = s
+        moved = np.max(np.linalg.norm(nxt - cur[active], axis=2), axis=1)
+        cur[active] = nxt
+        if not coarse:   # converged quads skip the remaining fine passes
+            active[np.flatnonzero(active)[moved < CONVERGED_PX]] = False
     fitted = fitted_any
-    return QuadFit(cur, fitted, rms)
+    return QuadFit(cur, fitted, rms, sigma)
 
 
 @lru_cache(maxsize=4)
@@ -279,6 +350,27 @@ def code_bits(dictionary_id: int = cv2.aruco.DICT_APRILTAG_36h11) -> np.ndarray:
     return np.stack([cv2.aruco.generateImageMarker(d, i, side, borderBits=1) > 127 for i in range(n)])
 
 
+def _unit_square_to_quads(q: np.ndarray, uv1: np.ndarray) -> np.ndarray:
+    """Points (P, 3: u, v, 1) of the unit square mapped into every quad (N, 4, 2) by the homography
+    taking its corners (0,0), (1,0), (1,1), (0,1) to the quad's: (N, P, 2).  The N 8x8 systems are
+    solved at once."""
+    N = len(q)
+    A = np.zeros((N, 8, 8))
+    b = q.reshape(N, 8)
+    for i, (u, v) in enumerate(((0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0))):
+        x, y = q[:, i, 0], q[:, i, 1]
+        A[:, 2 * i, 0:3] = (u, v, 1.0)
+        A[:, 2 * i, 6] = -u * x
+        A[:, 2 * i, 7] = -v * x
+        A[:, 2 * i + 1, 3:6] = (u, v, 1.0)
+        A[:, 2 * i + 1, 6] = -u * y
+        A[:, 2 * i + 1, 7] = -v * y
+    h = np.linalg.solve(A, b[..., None])[..., 0]
+    Hm = np.concatenate([h, np.ones((N, 1))], axis=1).reshape(N, 3, 3)
+    p = np.einsum("nij,pj->npi", Hm, uv1)
+    return p[..., :2] / p[..., 2:]
+
+
 def _cell_samples(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     """(N, 64) grey levels at the 8x8 cell centres of each quad (corner 0 = the marker's top-left,
     row by row), bilinear."""
@@ -286,11 +378,7 @@ def _cell_samples(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     c = (np.arange(CELLS) + 0.5) / CELLS
     gu, gv = np.meshgrid(c, c)                                         # u right, v down
     uv1 = np.column_stack([gu.ravel(), gv.ravel(), np.ones(CELLS * CELLS)])
-    unit = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], np.float32)
-    pts = np.empty((len(q), CELLS * CELLS, 2))
-    for i in range(len(q)):
-        h = uv1 @ cv2.getPerspectiveTransform(unit, q[i].astype(np.float32)).T
-        pts[i] = h[:, :2] / h[:, 2:]
+    pts = _unit_square_to_quads(q, uv1)
     g = np.asarray(grey, dtype=np.float32)
     return _bilinear(g, pts[..., 0], pts[..., 1])
 
@@ -328,3 +416,33 @@ def read_bits(grey: np.ndarray, quads: np.ndarray) -> tuple[np.ndarray, np.ndarr
     v = _cell_samples(grey, q)
     thr, dark, bright = _otsu(v)
     return (v > thr[:, None]).reshape(len(q), CELLS, CELLS), bright - dark
+
+
+def identify(grey: np.ndarray, quads: np.ndarray, codes: np.ndarray, allowed: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which marker each quad (N, 4, 2; clockwise, any starting corner) shows: its cells read with
+    each of the four corners as the top-left, against the patterns `codes` (n_ids, 8, 8) of the ids
+    in `allowed`.  Returns (id, corners rolled so corner 0 is the marker's top-left, cells that
+    disagree with that id's pattern, of 64)."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    N = len(q)
+    allowed = np.asarray(allowed, dtype=np.int64)
+    if N == 0 or allowed.size == 0:
+        return np.zeros(N, np.int64), q, np.full(N, CELLS * CELLS)
+    weights = (np.uint64(1) << np.arange(CELLS * CELLS, dtype=np.uint64))
+    packed = (codes[allowed].reshape(len(allowed), -1).astype(np.uint64) * weights).sum(axis=1)
+    best_err = np.full(N, CELLS * CELLS + 1)
+    best_id = np.zeros(N, np.int64)
+    best_q = q.copy()
+    for r in range(4):
+        qr = np.roll(q, -r, axis=1)
+        bits, _ = read_bits(grey, qr)
+        word = (bits.reshape(N, -1).astype(np.uint64) * weights).sum(axis=1)
+        err = np.bitwise_count(word[:, None] ^ packed[None, :])          # (N, n_allowed)
+        j = np.argmin(err, axis=1)
+        e = err[np.arange(N), j]
+        better = e < best_err
+        best_err = np.where(better, e, best_err)
+        best_id = np.where(better, allowed[j], best_id)
+        best_q[better] = qr[better]
+    return best_id, best_q, best_err
