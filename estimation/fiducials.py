@@ -202,27 +202,26 @@ class TagDetector:
         if n == 0:
             return None
         errs = np.asarray(errs, dtype=float).reshape(-1)
-        cands = []
-        for rv, tv, e in zip(rvecs, tvecs, errs):
-            R, _ = cv2.Rodrigues(rv)
-            # with these object points the solved frame already is the paper's tag frame
-            cands.append((float(e), Pose3(Rot3(R), np.asarray(tv, dtype=float).reshape(3))))
-        order = np.argsort([e for e, _ in cands])
-        best_e, best = cands[order[0]]
-        ratio = (cands[order[1]][0] / max(best_e, 1e-9)) if len(cands) > 1 else float("inf")
+        order = np.argsort(errs)
+        ratio = float(errs[order[1]] / max(errs[order[0]], 1e-9)) if n > 1 else float("inf")
+        # with these object points the solved frame already is the paper's tag frame
+        pose = lambda i: Pose3(Rot3(cv2.Rodrigues(rvecs[i])[0]), np.asarray(tvecs[i], dtype=float).reshape(3))  # noqa: E731
+        best_i = int(order[0])
         ambiguous = False
-        if len(cands) > 1 and ratio < cfg.ambiguity_ratio:
+        if n > 1 and ratio < cfg.ambiguity_ratio:
             expected = predict(tid) if predict is not None else None
             if expected is not None:
-                def rot_dist(p: Pose3) -> float:
-                    return float(np.linalg.norm(Rot3.Logmap(expected.rotation().between(p.rotation()))))
-                best_e, best = min(cands, key=lambda c: rot_dist(c[1]))
+                def rot_dist(i: int) -> float:
+                    return float(np.linalg.norm(Rot3.Logmap(expected.rotation().between(pose(i).rotation()))))
+                best_i = min(range(n), key=rot_dist)
             else:
                 ambiguous = True
+        best_e = float(errs[best_i])
         if best_e > cfg.max_reprojection_px:
             return None
+        best = pose(best_i)
         cov = self._covariance(best, size, sides.mean(), best_e)
-        return Detection(tid, corners, best, cov, best_e, float(ratio), ambiguous, size)
+        return Detection(tid, corners, best, cov, best_e, ratio, ambiguous, size)
 
     def measurement_covariance(self, camera_T_tag: Pose3, size_m: float, side_px: float,
                                reprojection_px: float = 0.0) -> np.ndarray:
@@ -233,12 +232,12 @@ class TagDetector:
     def _covariance(self, camera_T_tag: Pose3, size: float, side_px: float, reproj_px: float) -> np.ndarray:
         f = 0.5 * (self.K[0, 0] + self.K[1, 1])
         s_px = max(self.config.corner_sigma_px, reproj_px)
-        t = camera_T_tag.translation()
-        d = float(np.linalg.norm(t))
+        M = camera_T_tag.matrix()
+        R, t = M[:3, :3], M[:3, 3]
+        d = float(np.sqrt(t @ t))
+        los = t / max(d, 1e-9)
         # viewing angle between the tag normal and the line of sight
-        normal = camera_T_tag.rotation().matrix()[:, 2]
-        cos_a = abs(float(np.dot(normal, -t / max(d, 1e-9))))
-        cos_a = max(cos_a, 0.2)
+        cos_a = max(abs(float(R[:, 2] @ los)), 0.2)
         lateral = d * s_px / f
         depth = d * d * s_px * math.sqrt(2.0) / (f * size)
         rot = s_px * math.sqrt(2.0) / max(side_px, 1.0)          # about the line of sight
@@ -246,16 +245,17 @@ class TagDetector:
         # by side * (size / 2) * sin(tilt) / d, so a frontal tag's tilt is poorly determined
         tilt = s_px * math.sqrt(2.0) * d / (max(side_px, 1.0) * 0.5 * size)
         # camera-frame translation covariance (depth along the line of sight), then into the tag frame
-        los = t / max(d, 1e-9)
-        P = np.eye(3) - np.outer(los, los)
-        cov_t_cam = lateral ** 2 * P + depth ** 2 * np.outer(los, los)
-        R = camera_T_tag.rotation().matrix()
+        L = np.outer(los, los)
+        cov_t_cam = lateral ** 2 * (np.identity(3) - L) + depth ** 2 * L
         cov_t = R.T @ cov_t_cam @ R
         # rotation: tilt about the tag's in-plane axes is the weak direction when foreshortened
         sin_a = math.sqrt(max(0.0, 1.0 - cos_a * cos_a))
         tilt = 1.0 / math.hypot(1.0 / tilt, sin_a / (rot / cos_a))    # oblique views see tilt better
-        cov_r = np.diag([tilt ** 2, tilt ** 2, rot ** 2])
         cov = np.zeros((6, 6))
-        cov[:3, :3] = cov_r
-        cov[3:, 3:] = cov_t + np.eye(3) * 1e-10
+        cov[0, 0] = cov[1, 1] = tilt ** 2
+        cov[2, 2] = rot ** 2
+        cov[3:, 3:] = cov_t
+        cov[3, 3] += 1e-10
+        cov[4, 4] += 1e-10
+        cov[5, 5] += 1e-10
         return cov

@@ -43,8 +43,8 @@ MAX_REACH_PX = 2.5        # window half-width across an edge (3 sigma of the sim
 MIN_REACH_PX = 1.0
 COARSE_SEARCH_PX = 3.0    # how far the first pass looks for an edge (a detector's corners can be 2-3 px off)
 COARSE_SEARCH_CELLS = 1.5  # ... or 1.5 cells: the inner pattern's and quiet zone's edges step the other way
-COARSE_PASSES = 1
-CONVERGED_PX = 0.1        # a fine pass that moved no corner more than this ends a quad's refinement (it contracts the error 10-1000x)
+COARSE_BELOW_CELL_PX = 4.5  # tags with smaller cells start with a coarse pass
+CONVERGED_PX = 0.1        # a fine pass that moved no corner more than this ends a quad's refinement
 EDGE_LEVELS_MIN_CELL_PX = 4.0   # smaller cells: an edge's dark/bright levels are its tag's
 
 
@@ -303,39 +303,49 @@ def _distort(pts: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None) -> n
 
 
 def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None = None,
-              passes: int = 2) -> QuadFit:
+              passes: int = 3) -> QuadFit:
     """Refine the quads (N, 4, 2; corners clockwise in the image as aruco returns them) of tags in a
-    grey image (2-D, any numeric type) by fitting each edge: a coarse pass, then `passes` fine ones;
-    see the module's docstring.  With
+    grey image (2-D, any numeric type) by fitting each edge: a coarse pass first for small tags
+    (their windows are too short to pull in a corner a pixel or two off), then up to `passes` fine
+    ones, until no corner moves more than CONVERGED_PX; see the module's docstring.  With
     `camera` = (K, dist) the edges are fitted as straight lines in the undistorted image (lens
     distortion bends them by tenths of a pixel over a near tag)."""
     q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
     g = np.ascontiguousarray(grey, dtype=np.float32)
-    fitted = np.zeros(q.shape[:2], bool)
-    rms = np.full(q.shape[:2], np.nan)
+    N = len(q)
+    rms = np.full((N, 4), np.nan)
+    sigma = np.full((N, 4), np.nan)
+    fitted_any = np.zeros((N, 4), bool)
     cur = q.copy()
-    fitted_any = np.zeros(q.shape[:2], bool)
-    sigma = np.full(q.shape[:2], np.nan)
-    active = np.ones(len(q), bool)
-    for coarse in [True] * COARSE_PASSES + [False] * passes:
-        if not active.any():
-            break
-        p, d, fitted, rms_pass, stats = _fit_pass(g, cur[active], camera, coarse)
-        rms[active] = np.where(fitted, rms_pass, rms[active])
-        fitted_any[active] |= fitted
+    side = np.linalg.norm(np.roll(q, -1, axis=1) - q, axis=2).min(axis=1) if N else np.zeros(0)
+    coarse_first = side / CELLS < COARSE_BELOW_CELL_PX
+    active = np.ones(N, bool)
+
+    def step(idx: np.ndarray, coarse: bool) -> np.ndarray:
+        """One pass over the quads `idx`; how far each one's corners moved."""
+        p, d, fitted, rms_pass, stats = _fit_pass(g, cur[idx], camera, coarse)
+        rms[idx] = np.where(fitted, rms_pass, rms[idx])
+        fitted_any[idx] |= fitted
         ideal = _intersect(p, d)
         nxt = _distort(ideal, camera)
-        # a quad whose lines no longer meet (degenerate fit) keeps what it had
-        meet = np.all(np.isfinite(nxt), axis=(1, 2))
-        nxt = np.where(meet[:, None, None], nxt, cur[active])
+        meet = np.all(np.isfinite(nxt), axis=(1, 2))      # lines that no longer meet: keep the quad
+        nxt = np.where(meet[:, None, None], nxt, cur[idx])
         all_fit = fitted.all(axis=1) & meet
         s = np.full(fitted.shape, np.nan)
         s[all_fit] = _corner_sigma(p[all_fit], d[all_fit], ideal[all_fit], stats[all_fit])
-        sigma[active] = s
-        moved = np.max(np.linalg.norm(nxt - cur[active], axis=2), axis=1)
-        cur[active] = nxt
-        if not coarse:   # converged quads skip the remaining fine passes
-            active[np.flatnonzero(active)[moved < CONVERGED_PX]] = False
+        sigma[idx] = s
+        moved = np.max(np.linalg.norm(nxt - cur[idx], axis=2), axis=1)
+        cur[idx] = nxt
+        return moved
+
+    if coarse_first.any():
+        step(np.flatnonzero(coarse_first), True)
+    for _ in range(passes):
+        idx = np.flatnonzero(active)
+        if len(idx) == 0:
+            break
+        moved = step(idx, False)
+        active[idx[moved < CONVERGED_PX]] = False     # converged: the fine pass contracts the error 10-1000x
     fitted = fitted_any
     return QuadFit(cur, fitted, rms, sigma)
 
