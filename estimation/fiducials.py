@@ -154,9 +154,6 @@ class TagDetector:
         mine = [i for i, t in enumerate(ids) if t in self.sizes]
         quads = np.array([corners[i].reshape(4, 2) for i in mine], dtype=np.float64).reshape(-1, 4, 2)
         ids = [ids[i] for i in mine]
-        refined, ok = self.refine(grey, ids, quads)
-        found_ids = [t for t, good in zip(ids, ok) if good]
-        found = [refined[ok]]
         # aruco reads the bits off its own coarse quad and gives up on small, blurred or
         # compressed tags that the AprilTag library reads; the refined quad reads them better
         rej = np.array([r.reshape(4, 2) for r in rejected], dtype=np.float64).reshape(-1, 4, 2)
@@ -164,17 +161,28 @@ class TagDetector:
             sides = np.linalg.norm(np.roll(rej, -1, axis=1) - rej, axis=2)
             fresh = np.array([not _overlaps(r, quads) for r in rej], bool)
             rej = rej[(sides.min(axis=1) >= cfg.min_side_px) & fresh]
-        if len(rej) and self._allowed.size:
-            fit = fit_quads(grey, rej, (self.K, self.dist))
-            good = self._fit_ok(fit, rej)
-            tid, rolled, errors = identify(grey, fit.corners[good], self._codes, self._allowed)
-            keep = errors <= cfg.max_bit_errors
-            found_ids += [int(t) for t in tid[keep]]
-            found.append(rolled[keep])
+        else:
+            rej = rej[:0]
+        n = len(quads)
+        everything = np.concatenate([quads, rej])
+        if len(everything) == 0:
+            return [], np.zeros((0, 4, 2))
+        fit = fit_quads(grey, everything, (self.K, self.dist))
+        ok = self._fit_ok(fit, everything)
+        bits, _ = read_bits(grey, fit.corners[:n])
+        errors = np.array([np.count_nonzero(b != self._codes[t]) for b, t in zip(bits, ids)], dtype=int)
+        keep = ok[:n] & (errors <= cfg.max_bit_errors)
+        found_ids = [t for t, good in zip(ids, keep) if good]
+        found = [fit.corners[:n][keep]]
+        if ok[n:].any():
+            tid, rolled, errors = identify(grey, fit.corners[n:][ok[n:]], self._codes, self._allowed)
+            good = errors <= cfg.max_bit_errors
+            found_ids += [int(t) for t in tid[good]]
+            found.append(rolled[good])
         return found_ids, np.concatenate(found).reshape(-1, 4, 2)
 
     def refine(self, grey: np.ndarray, ids: Sequence[int], quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Edge-fitted corners of aruco's decoded quads and whether each passed every check."""
+        """Edge-fitted corners of quads of known ids and whether each passed every check."""
         fit = fit_quads(grey, quads, (self.K, self.dist))
         bits, _ = read_bits(grey, fit.corners)
         errors = np.array([np.count_nonzero(b != self._codes[t]) for b, t in zip(bits, ids)], dtype=int)
