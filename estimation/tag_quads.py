@@ -44,6 +44,7 @@ MIN_REACH_PX = 1.0
 COARSE_SEARCH_PX = 3.0    # how far the first pass looks for an edge (a detector's corners can be 2-3 px off)
 COARSE_SEARCH_CELLS = 1.5  # ... or 1.5 cells: the inner pattern's and quiet zone's edges step the other way
 COARSE_BELOW_CELL_PX = 4.5  # tags with smaller cells start with a coarse pass
+SHARPEN = 0.25            # Laplacian sharpening of the cell samples before reading bits (AprilTag's default)
 CONVERGED_PX = 0.1        # a fine pass that moved no corner more than this ends a quad's refinement
 EDGE_LEVELS_MIN_CELL_PX = 4.0   # smaller cells: an edge's dark/bright levels are its tag's
 
@@ -150,7 +151,10 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     x = np.where(use_rows, si, ri)
     y = np.where(use_rows, ri, si)
     inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
-    row_ok = np.all(inside | (wgt == 0), axis=1) & np.isfinite(s_line)
+    # a tag touching the frame: the quiet zone is taken to go on past the edge of the image (pixels
+    # off the image on the bright side read bright); off the image on the dark side, the row is lost
+    bright_side = (s_pix - s_line[:, None]) * sgn[:, None] > 0
+    row_ok = np.all(inside | (wgt == 0) | bright_side, axis=1) & np.isfinite(s_line)
     vals = flat[np.clip(y, 0, H - 1) * W + np.clip(x, 0, W - 1)].astype(np.float64)
     # dark and bright levels of each edge: half a cell inside (the black border) and outside (the
     # quiet zone) along the normal, averaged over the edge's rows
@@ -176,7 +180,9 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
         bright = np.where(own, sum_bright / n_lvl, np.repeat(tag_bright, 4))
     contrast = bright - dark
     with np.errstate(invalid="ignore", divide="ignore"):
-        fn = (vals - dark[edge_of, None]) / contrast[edge_of, None]
+        # an edge without contrast gives NaN, never inf (its rows are dropped below)
+        fn = (vals - dark[edge_of, None]) / np.where(contrast > 0, contrast, np.nan)[edge_of, None]
+        fn = np.where(inside, fn, 1.0)
     if coarse:
         step = sgn[:, None] * np.diff(fn, axis=1)                      # dark-to-bright steps, at k + 0.5
         step = np.where((wgt[:, 1:] > 0) & (wgt[:, :-1] > 0), step, -np.inf)
@@ -381,16 +387,44 @@ def _unit_square_to_quads(q: np.ndarray, uv1: np.ndarray) -> np.ndarray:
     return p[..., :2] / p[..., 2:]
 
 
-def _cell_samples(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
-    """(N, 64) grey levels at the 8x8 cell centres of each quad (corner 0 = the marker's top-left,
-    row by row), bilinear."""
+def _grid_samples(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """(N, 10, 10) grey levels at the cell centres of each quad's 8x8 cells and of the ring of
+    quiet-zone cells around them (corner 0 = the marker's top-left, row by row), bilinear."""
     q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
-    c = (np.arange(CELLS) + 0.5) / CELLS
+    n = CELLS + 2
+    c = (np.arange(-1, CELLS + 1) + 0.5) / CELLS
     gu, gv = np.meshgrid(c, c)                                         # u right, v down
-    uv1 = np.column_stack([gu.ravel(), gv.ravel(), np.ones(CELLS * CELLS)])
+    uv1 = np.column_stack([gu.ravel(), gv.ravel(), np.ones(n * n)])
     pts = _unit_square_to_quads(q, uv1)
-    g = np.asarray(grey, dtype=np.float32)
-    return _bilinear(g, pts[..., 0], pts[..., 1])
+    return _bilinear(np.asarray(grey, dtype=np.float32), pts[..., 0], pts[..., 1]).reshape(len(q), n, n)
+
+
+def _cell_samples(grey: np.ndarray, quads: np.ndarray, sharpen: float = 0.0) -> np.ndarray:
+    """(N, 64) grey levels at the 8x8 cell centres of each quad (corner 0 = the marker's top-left,
+    row by row).  `sharpen` > 0 subtracts that much of each sample's Laplacian over the grid,
+    undoing some of the blur that mixes neighbouring cells on small tags, as the AprilTag library's
+    decode_sharpening does."""
+    v = _grid_samples(grey, quads)
+    if sharpen > 0:
+        lap = 4 * v[:, 1:-1, 1:-1] - v[:, :-2, 1:-1] - v[:, 2:, 1:-1] - v[:, 1:-1, :-2] - v[:, 1:-1, 2:]
+        return (v[:, 1:-1, 1:-1] + sharpen * lap).reshape(len(v), -1)
+    return v[:, 1:-1, 1:-1].reshape(len(v), -1)
+
+
+@lru_cache(maxsize=1)
+def _ring_models() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares planes over the 10x10 grid: (black ring index, its pseudo-inverse, white ring
+    index, its pseudo-inverse, the 8x8 cells' design) for a + b u + c v fitted to the black border
+    cells and to the white quiet-zone cells."""
+    n = CELLS + 2
+    i, j = np.meshgrid(np.arange(n), np.arange(n))
+    design = np.column_stack([np.ones(n * n), i.ravel() - n / 2, j.ravel() - n / 2])
+    ring = (i == 0) | (j == 0) | (i == n - 1) | (j == n - 1)
+    border = ((i == 1) | (j == 1) | (i == n - 2) | (j == n - 2)) & ~ring
+    inner = ~ring
+    white_idx, black_idx = np.flatnonzero(ring.ravel()), np.flatnonzero(border.ravel())
+    return (black_idx, np.linalg.pinv(design[black_idx]), white_idx, np.linalg.pinv(design[white_idx]),
+            design[np.flatnonzero(inner.ravel())])
 
 
 def _otsu(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -418,14 +452,27 @@ def _tag_levels(grey: np.ndarray, quads: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def read_bits(grey: np.ndarray, quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Sample the 8x8 cells of each quad (N, 4, 2; corner 0 = the marker's top-left) at their
-    centres and threshold them halfway between the dark and bright clusters: (bits (N, 8, 8) bool,
-    True = white; contrast (N,) grey levels between the clusters)."""
+    centres, sharpened (SHARPEN), and threshold each halfway between a plane fitted to the black
+    border cells and one fitted to the white quiet-zone cells around them (the AprilTag library's
+    way: light falls unevenly across a tag); where the quiet zone does not read white (no margin,
+    off the image), halfway between the 64 cells' own dark and bright clusters.  Returns (bits
+    (N, 8, 8) bool, True = white; contrast (N,) grey levels between black and white)."""
     q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
-    if len(q) == 0:
+    N = len(q)
+    if N == 0:
         return np.zeros((0, CELLS, CELLS), bool), np.zeros(0)
-    v = _cell_samples(grey, q)
-    thr, dark, bright = _otsu(v)
-    return (v > thr[:, None]).reshape(len(q), CELLS, CELLS), bright - dark
+    grid = _grid_samples(grey, q)
+    lap = 4 * grid[:, 1:-1, 1:-1] - grid[:, :-2, 1:-1] - grid[:, 2:, 1:-1] - grid[:, 1:-1, :-2] - grid[:, 1:-1, 2:]
+    v = (grid[:, 1:-1, 1:-1] + SHARPEN * lap).reshape(N, -1)
+    black_idx, black_pinv, white_idx, white_pinv, inner = _ring_models()
+    flat = grid.reshape(N, -1)
+    black = (flat[:, black_idx] @ black_pinv.T) @ inner.T              # (N, 64) modelled black
+    white = (flat[:, white_idx] @ white_pinv.T) @ inner.T
+    thr_model = 0.5 * (black + white)
+    thr_otsu, dark, bright = _otsu(v)
+    ring_ok = (flat[:, white_idx].mean(axis=1) - flat[:, black_idx].mean(axis=1)) > 0.5 * (bright - dark)
+    thr = np.where(ring_ok[:, None], thr_model, thr_otsu[:, None])
+    return (v > thr).reshape(N, CELLS, CELLS), bright - dark
 
 
 def identify(grey: np.ndarray, quads: np.ndarray, codes: np.ndarray, allowed: np.ndarray
