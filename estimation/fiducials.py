@@ -193,8 +193,12 @@ class TagDetector:
         if len(ids) == 0:
             return np.zeros(0, dtype=int)
         codes = self._codes[np.asarray(ids)]
-        errors = [np.count_nonzero(read_bits(grey, q)[0] != codes, axis=(1, 2)) for q in (refined, quads)]
-        return np.minimum(*errors)
+        errors = np.count_nonzero(read_bits(grey, refined)[0] != codes, axis=(1, 2))
+        again = np.flatnonzero(errors > self.config.max_bit_errors)
+        if len(again):
+            errors[again] = np.minimum(errors[again],
+                                       np.count_nonzero(read_bits(grey, quads[again])[0] != codes[again], axis=(1, 2)))
+        return errors
 
     def _fit_ok(self, fit, quads: np.ndarray) -> np.ndarray:
         """Every edge fitted and straight, and no corner far from where the detector put it."""
