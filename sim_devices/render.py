@@ -47,7 +47,7 @@ from scipy.special import ndtr
 
 from lab.geometry import Pose3
 
-__all__ = ["TagToRender", "render_tags", "tag_corners_px", "pixel_edge_response", "QUIET_ZONE_CELLS"]
+__all__ = ["TagToRender", "render_tags", "render_grey", "tag_corners_px", "pixel_edge_response", "QUIET_ZONE_CELLS"]
 
 # AprilTag 36h11: a 6x6 data grid inside a one-cell black border = 8 cells across the black square.
 _CELLS = 8
@@ -283,7 +283,7 @@ def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: n
     roi += acc_s
 
 
-def render_tags(
+def render_grey(
     K: np.ndarray,
     dist: Sequence[float] | np.ndarray | None,
     width: int,
@@ -294,17 +294,10 @@ def render_tags(
     black_level: float = 25.0,
     white_level: float = 225.0,
     blur_sigma_px: float = 0.6,
-    noise_sigma: float = 2.0,
-    rng: np.random.Generator | None = None,
 ) -> np.ndarray:
-    """Render AprilTag 36h11 tags seen by a camera.
-
-    K: 3x3 intrinsics; dist: OpenCV distortion coefficients (k1, k2, p1, p2[, k3...]) or None;
-    tags: (tag id, black-square edge in m, camera_T_tag) with the tag frame x right, y up, z out of
-    the face.  background: a gray level (0-255) or an image of the frame's size.  noise_sigma is in
-    gray levels; blur_sigma_px is the defocus blur (Gaussian sigma, px).  Returns an
-    (height, width, 3) uint8 BGR image.
-    """
+    """The noise-free image `render_tags` starts from, in grey levels, before noise and rounding to
+    8 bits: (height, width) float32.  Studies use it to tell the sensor's quantisation from the
+    rest."""
     K = np.asarray(K, dtype=float).reshape(3, 3)
     if width <= 0 or height <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
@@ -341,7 +334,33 @@ def render_tags(
 
     for _, tag_id, size_m, M in sorted(visible, key=lambda v: -v[0]):
         _draw_tag(img, ideal, K, d, tag_id, size_m, M, black_level, white_level, blur_sigma_px)
+    return img
 
+
+def render_tags(
+    K: np.ndarray,
+    dist: Sequence[float] | np.ndarray | None,
+    width: int,
+    height: int,
+    tags: Sequence[TagToRender],
+    *,
+    background: float | np.ndarray = 110.0,
+    black_level: float = 25.0,
+    white_level: float = 225.0,
+    blur_sigma_px: float = 0.6,
+    noise_sigma: float = 2.0,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
+    """Render AprilTag 36h11 tags seen by a camera.
+
+    K: 3x3 intrinsics; dist: OpenCV distortion coefficients (k1, k2, p1, p2[, k3...]) or None;
+    tags: (tag id, black-square edge in m, camera_T_tag) with the tag frame x right, y up, z out of
+    the face.  background: a gray level (0-255) or an image of the frame's size.  noise_sigma is in
+    gray levels; blur_sigma_px is the defocus blur (Gaussian sigma, px).  Returns an
+    (height, width, 3) uint8 BGR image.
+    """
+    img = render_grey(K, dist, width, height, tags, background=background, black_level=black_level,
+                      white_level=white_level, blur_sigma_px=blur_sigma_px)
     if noise_sigma > 0:
         g = rng if rng is not None else np.random.default_rng()
         # cv2.randn is ~4x faster than numpy's normal for a full frame; seeding it from `rng`
