@@ -14,16 +14,21 @@ edges intersect at the corners.  The 50 % crossing of an interpolated profile (w
 before) is biased by up to 0.1 px depending on that phase, and a frontal tag read that way looks
 tilted by a degree or more.
 
-What keeps other structure out of the windows: they reach at most one cell minus 1.5 px from the
-edge on either side (the black border cell inside, the white quiet zone outside), and rows within
-a window's reach of a corner are left out.  The dark and bright levels are each edge's mean of the
-windows' end pixels.  Rows whose window leaves the image are dropped (a tag touching the border
-keeps its other edges); an edge with fewer than `MIN_ROWS` usable rows keeps the line it came
-with.
+What keeps other structure out of the windows: they reach at most one cell minus 2.5 px across the
+edge (the black border cell inside, the white quiet zone outside, clear of the next edges' blur),
+symmetric about the current line so that truncated blur tails cancel and passes converge; rows
+within a window's reach of a corner are left out.  The dark and bright levels are the edge's mean
+half a cell inside and outside it, or its tag's black and white for cells under 4 px.  A window off
+the image on the dark side loses its row; on the bright side (a tag touching the frame) the quiet
+zone is taken to go on past the edge.  Tags with cells under 4.5 px start with a coarse pass (the
+steepest dark-to-bright step within 1.5 cells), which pulls in a detector's corner 2-3 px off; fine
+passes follow until no corner moves more than CONVERGED_PX.  An edge with fewer than `MIN_ROWS`
+usable rows keeps the line it came with (and its quad is reported as not fully fitted).
 
-Bit reading (`read_bits`): the 8x8 cells sampled at their centres through the quad's homography,
-thresholded halfway between the dark and bright clusters (Otsu on the 64 samples), so a detection
-can be checked against the dictionary with a Hamming distance of our choosing.
+Bit reading (`read_bits`, `identify`): the 8x8 cells and the quiet-zone ring around them sampled at
+their centres through the quad's homography, sharpened, and thresholded halfway between planes
+fitted to the black border and to the white ring, as the AprilTag library does; a detection is
+then checked against the dictionary with a Hamming distance of our choosing.
 """
 
 from __future__ import annotations
@@ -86,10 +91,10 @@ def _bilinear(g: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None, coarse: bool
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One pass over every edge of every quad: each edge as a line (point, unit direction) in ideal
-    pinhole pixels (image pixels without `camera`), whether it was fitted, and the rms of its
-    crossings about it (px).  `coarse`: find each row's crossing as the steepest dark-to-bright step
+    pinhole pixels (image pixels without `camera`), whether it was fitted, the rms of its crossings
+    about it (px), and its fit's statistics for `_corner_sigma` (N, 4, 3).  `coarse`: find each row's crossing as the steepest dark-to-bright step
     within a wider search (COARSE_SEARCH_PX), to pull in a detector's corner that is pixels off."""
     H, W = grey.shape
     flat = grey.ravel()
@@ -128,8 +133,8 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     r_hi = np.floor(np.maximum(pr, qr) - margin * ur)
     count = np.maximum(r_hi - r_lo + 1, 0).astype(np.int64).ravel()
     edge_of = np.repeat(np.arange(E), count)
-    if edge_of.size == 0:
-        return p_in, d_in, np.zeros((N, 4), bool), np.full((N, 4), np.nan)
+    if edge_of.size == 0:   # quads too small for a single row clear of their corners
+        return p_in, d_in, np.zeros((N, 4), bool), np.full((N, 4), np.nan), np.zeros((N, 4, 3))
     start = np.repeat(np.cumsum(count) - count, count)
     r = r_lo.ravel()[edge_of] + (np.arange(edge_of.size) - start)
     slope = ((qs - ps) / np.where(qr != pr, qr - pr, np.nan)).ravel()
