@@ -43,7 +43,7 @@ DIFFERENT_SOLUTIONS_DEG = 1.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--quick", action="store_true", help="fewer trials (about 2 min)")
+    parser.add_argument("--quick", action="store_true", help="fewer trials (about 30 s)")
     parser.add_argument("--json", action="store_true", help="print the JSON instead of the Markdown table")
     parser.add_argument("--out", default=os.path.join("bench_out", "fiducials"),
                         help="output directory (default bench_out/fiducials)")

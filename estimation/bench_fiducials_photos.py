@@ -10,7 +10,8 @@ eye; a degraded variant's truth is that list carried through the degradation's k
 side.  Both detectors run on the variant:
 - recall: truth tags found (same id, centre within half a side);
 - false ids: detections of an id not in the photograph at all (a false positive for certain);
-  `unmatched`: detections of a real id where no truth tag is (none were seen: listed if any);
+  `unmatched`: detections of a real id where no truth tag is (shown beside the recall if any: a
+  tag the reference lacks, or a false positive of a real id; look);
 - corner error: max over a tag's four corners of |corner - reference corner|, against AprilTag 3's
   corners on the original carried through the geometry (only for its tags), so AprilTag 3 on a
   degraded variant is measured against itself on the original.
@@ -388,7 +389,8 @@ def timing_study(frames: int, seed: int) -> dict:
 def _cells(s: dict) -> str:
     err = (f"{s['err_median_px']:.2f} / {s['err_p95_px']:.2f} / {s['err_max_px']:.2f} ({s['over_1px']} > 1 px)"
            if s["corners"] else "")
-    return f"{s['found']}/{s['truth']} | {s['false_ids']} | {err}"
+    extra = f" (+{s['unmatched']} unmatched)" if s["unmatched"] else ""
+    return f"{s['found']}/{s['truth']}{extra} | {s['false_ids']} | {err}"
 
 
 def markdown(photos: dict, rendered: dict, timing: dict) -> list[str]:
