@@ -26,11 +26,9 @@ class AprilTag3Detection(NamedTuple):
 
 
 def available() -> bool:
-    try:
-        import pupil_apriltags  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    from importlib.util import find_spec
+
+    return find_spec("pupil_apriltags") is not None
 
 
 def version() -> str:

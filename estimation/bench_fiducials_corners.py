@@ -113,8 +113,9 @@ def corner_study(trials: int, seed: int) -> dict:
                     "max_px": float(np.max(np.linalg.norm(e, axis=1))) if len(e) else None,
                     "radial_bias_px": float(np.mean(r)) if len(r) else None,
                     "mean_px": float(np.linalg.norm(e.mean(axis=0))) if len(e) else None,
-                    "crlb_px": corner_crlb_px(side * math.cos(math.radians(a)) ** 0.5, 200.0,
-                                              noise if noisy else 0.0, blur),
+                    # the mean side already carries the foreshortening; the contrast is the
+                    # renderer's default black and white levels
+                    "crlb_px": corner_crlb_px(side, 200.0, noise if noisy else 0.0, blur),
                 })
     return {"rows": rows, "tag_size_m": TAG_SIZE_M, "blur_px": blur, "noise_grey": noise}
 
@@ -180,7 +181,6 @@ def _normal_from_corners(K, dist, corners, truth):
     """The tag normal IPPE reads from `corners`, the solution nearer the truth (as a prediction
     would settle it)."""
     import cv2
-    import numpy as np
 
     from estimation.fiducials import tag_object_points
 
