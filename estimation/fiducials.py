@@ -1,8 +1,18 @@
 """AprilTag 36h11 detection and single-view tag pose, with the pose ambiguity resolved and a
 measurement covariance.
 
-- Detection: OpenCV contrib's `ArucoDetector` with the AprilTag 36h11 dictionary, corners refined
-  to sub-pixel accuracy.
+- Detection: OpenCV contrib's `ArucoDetector` with the AprilTag 36h11 dictionary finds candidate
+  quads and their ids (accepting tags that touch the image border); each quad is then refined by
+  fitting its four edges (`estimation.tag_quads.fit_quads`: unbiased to a few thousandths of a pixel
+  on area-sampled images, lens distortion taken out) and checked: every edge fitted, straight (rms
+  of its row crossings), corners near the detector's quad, and the tag's 64 cells read back from
+  the refined quad within `max_bit_errors` of the id's pattern.  A tag failing a check is dropped:
+  its corners are not to be trusted at the accuracy the pose and the graph assume.
+- Corners: OpenCV's pixel convention (pixel centres at integer coordinates) and aruco's order:
+  the marker's top-left, top-right, bottom-right, bottom-left as OpenCV 4 draws it
+  (`cv2.aruco.generateImageMarker`, which the simulator renders), matching `tag_object_points`.
+  OpenCV 4's AprilTag markers are the AprilTag project's images turned 180 degrees, so on a tag
+  printed from those images corner 0 is the printed bottom-right (docs/fiducials.md).
 - Pose: `solvePnPGeneric(SOLVEPNP_IPPE_SQUARE)` returns both solutions of the planar ambiguity.
   The one with the lower reprojection error wins when it is clearly lower (ratio >= 
   `ambiguity_ratio`); otherwise, if a predicted pose is known (design + odometry), the solution
@@ -27,9 +37,11 @@ from typing import Callable, Mapping, Sequence
 import cv2
 import numpy as np
 
+from estimation.tag_quads import code_bits, fit_quads, identify, read_bits
 from lab.geometry import Pose3, Rot3
 
-__all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points"]
+__all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges",
+           "apriltag_to_opencv_corners"]
 
 
 @dataclass(frozen=True)
@@ -54,6 +66,11 @@ class DetectorConfig:
     ambiguity_ratio: float = 2.0      # min error ratio for the reprojection test to decide alone
     min_side_px: float = 12.0         # smaller tags are too coarse to trust
     max_reprojection_px: float = 3.0  # worse fits are dropped (mis-detections, motion)
+    # the refined quad's checks (a tag failing one is dropped)
+    max_bit_errors: int = 2           # of the 64 cells (border included) read back from the refined quad
+    max_edge_rms_px: float = 0.3      # row crossings about each fitted edge: a straight, clean edge
+    max_corner_shift_px: float = 3.5  # from aruco's quad (or 20 % of the side, if larger): its
+                                      # unrefined corners are up to ~3 px off on small photographed tags
 
 
 @lru_cache(maxsize=64)
@@ -65,63 +82,29 @@ def tag_object_points(size_m: float) -> np.ndarray:
     return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]], dtype=np.float64)
 
 
+def apriltag_to_opencv_corners(corners: np.ndarray) -> np.ndarray:
+    """Corners as the AprilTag 3 library reports them (`apriltag_detection.p`, e.g. pupil-apriltags'
+    `Detection.corners`) -> ours.  AprilTag puts pixel centres at half-integers (x + 0.5) and lists
+    the corners counter-clockwise from the bottom-left of the tag as AprilTag prints it; OpenCV 4's
+    marker of the same id is that image turned 180 degrees, so its top-left is AprilTag's
+    bottom-right: ours = p[[1, 0, 3, 2]] - 0.5."""
+    return np.asarray(corners, dtype=np.float64).reshape(4, 2)[[1, 0, 3, 2]] - 0.5
+
+
 def refine_corners_by_edges(grey: np.ndarray, corners: np.ndarray, samples: int = 12) -> np.ndarray | None:
-    """Sub-pixel corners as intersections of the black square's four edges.
-
-    aruco's refinements leave the corners of a dark square biased inward by a few tenths of a
-    pixel (measured on rendered tags with known corners: the square comes out ~0.4 px small, i.e.
-    ~1 % too far at 2 m).  AprilTag's own detector fits lines to the edges instead; so do we: along
-    each side, the 50 % crossing of the black-to-white profile is found at `samples` points, a line
-    is fitted through them, and adjacent lines are intersected.  None when an edge can't be read."""
-    from scipy.ndimage import map_coordinates
-
-    c = np.asarray(corners, dtype=np.float64)
-    side = float(np.mean(np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)))
-    cell = side / 8.0
-    reach = min(3.0, 0.7 * cell)
-    if reach < 0.9:
+    """Sub-pixel corners of one tag as intersections of its black square's four fitted edges (see
+    `estimation.tag_quads`); None when an edge could not be fitted.  `samples` is no longer used
+    (every image row or column crossing an edge is), kept for callers."""
+    fit = fit_quads(grey, np.asarray(corners, dtype=np.float64).reshape(1, 4, 2))
+    if not fit.edges_fitted.all() or np.max(np.linalg.norm(fit.corners[0] - corners, axis=1)) > 2.5:
         return None
-    s = np.arange(-reach, reach + 1e-9, 0.2)
-    t = np.linspace(0.2, 0.8, samples)
-    p0 = c
-    p1 = np.roll(c, -1, axis=0)
-    u = (p1 - p0) / np.linalg.norm(p1 - p0, axis=1, keepdims=True)
-    n = np.column_stack([u[:, 1], -u[:, 0]])           # outward for aruco's clockwise (y down) order
-    q = p0[:, None, :] + t[None, :, None] * (p1 - p0)[:, None, :]            # (4, samples, 2)
-    xy = q[:, :, None, :] + s[None, None, :, None] * n[:, None, None, :]     # (4, samples, S, 2)
-    prof = map_coordinates(grey, [xy[..., 1].ravel(), xy[..., 0].ravel()], order=1,
-                           mode="nearest").reshape(xy.shape[:3])
-    inner = prof[:, :, s < -0.5 * reach].mean(axis=2)
-    outer = prof[:, :, s > 0.5 * reach].mean(axis=2)
-    level = 0.5 * (inner + outer)
-    above = prof >= level[:, :, None]
-    k = np.argmax(above, axis=2)                                           # first sample at/over the level
-    ok = (outer - inner >= 20.0) & (k > 0) & above.any(axis=2)
-    kk = np.clip(k, 1, len(s) - 1)
-    lo = np.take_along_axis(prof, (kk - 1)[..., None], axis=2)[..., 0]
-    hi = np.take_along_axis(prof, kk[..., None], axis=2)[..., 0]
-    frac = np.where(hi > lo, (level - lo) / np.where(hi > lo, hi - lo, 1.0), 0.5)
-    offset = s[kk - 1] + frac * (s[kk] - s[kk - 1])
-    edge = q + offset[..., None] * n[:, None, :]
-    lines = []
-    for i in range(4):
-        P = edge[i][ok[i]]
-        if len(P) < 4:
-            return None
-        centre = P.mean(axis=0)
-        _, _, vt = np.linalg.svd(P - centre)
-        lines.append((centre, vt[0]))
-    out = np.empty((4, 2))
-    for i in range(4):
-        (a, da), (b, db) = lines[(i - 1) % 4], lines[i]
-        A = np.column_stack([da, -db])
-        if abs(np.linalg.det(A)) < 1e-6:
-            return None
-        t = np.linalg.solve(A, b - a)
-        out[i] = a + t[0] * da
-    if np.max(np.linalg.norm(out - c, axis=1)) > 2.0:   # refinement wandered off: keep aruco's
-        return None
-    return out
+    return fit.corners[0]
+
+
+def _overlaps(quad: np.ndarray, others: np.ndarray) -> bool:
+    """Whether `quad`'s centre lies inside any of `others` (N, 4, 2)."""
+    c = quad.mean(axis=0)
+    return any(cv2.pointPolygonTest(o.astype(np.float32), (float(c[0]), float(c[1])), False) >= 0 for o in others)
 
 
 class TagDetector:
@@ -135,34 +118,97 @@ class TagDetector:
         self.sizes = dict(sizes)
         self.config = config or DetectorConfig()
         params = cv2.aruco.DetectorParameters()
-        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-        params.cornerRefinementWinSize = 3
-        params.cornerRefinementMaxIterations = 50
-        params.cornerRefinementMinAccuracy = 0.01
+        # our edge fit replaces aruco's corner refinement (cornerSubPix reads a dark square ~0.4 px
+        # small); tags touching the image border are kept (its default drops them within 3 px)
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
+        params.minDistanceToBorder = 0
+        # aruco reads bits from its coarse quad and misses tags the AprilTag library reads; let it
+        # propose with up to its dictionary's 5 corrected bits and decide on our own read of the
+        # refined quad (`max_bit_errors`)
+        params.errorCorrectionRate = 1.0
         self._detector = cv2.aruco.ArucoDetector(
             cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
+        self._codes = code_bits(cv2.aruco.DICT_APRILTAG_36h11)
+        self._allowed = np.array(sorted(t for t in self.sizes if 0 <= t < len(self._codes)), dtype=np.int64)
 
     def detect(self, image: np.ndarray,
                predict: Callable[[int], Pose3 | None] | None = None) -> list[Detection]:
         """Tags in `image` (BGR or grey).  `predict(tag_id)` may return the expected camera_T_tag
         (from the design and the camera's kinematics) to settle ambiguous poses."""
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        corners, ids, _ = self._detector.detectMarkers(grey)
-        grey_f = grey.astype(np.float32)
         out: list[Detection] = []
-        if ids is None:
-            return out
-        for c, tid in zip(corners, ids.reshape(-1)):
-            tid = int(tid)
-            if tid not in self.sizes:
-                continue
-            c = c.reshape(4, 2).astype(np.float64)
-            refined = refine_corners_by_edges(grey_f, c)
-            det = self._pose(tid, refined if refined is not None else c, predict)
+        for tid, c in zip(*self.find(grey)):
+            det = self._pose(tid, c, predict)
             if det is not None:
                 out.append(det)
         out.sort(key=lambda d: d.tag_id)
         return out
+
+    def find(self, grey: np.ndarray) -> tuple[list[int], np.ndarray]:
+        """Our tags' ids and refined corners (N, 4, 2) in a grey image, every check passed, before
+        any pose: aruco's decoded quads, and the quads it found but could not decode that our own
+        read of the refined quad identifies."""
+        cfg = self.config
+        corners, ids, rejected = self._detector.detectMarkers(grey)
+        ids = [] if ids is None else [int(t) for t in ids.reshape(-1)]
+        mine = [i for i, t in enumerate(ids) if t in self.sizes]
+        quads = np.array([corners[i].reshape(4, 2) for i in mine], dtype=np.float64).reshape(-1, 4, 2)
+        ids = [ids[i] for i in mine]
+        # aruco reads the bits off its own coarse quad and gives up on small, blurred or
+        # compressed tags that the AprilTag library reads; the refined quad reads them better
+        rej = np.array([r.reshape(4, 2) for r in rejected], dtype=np.float64).reshape(-1, 4, 2)
+        if len(rej) and self._allowed.size:
+            sides = np.linalg.norm(np.roll(rej, -1, axis=1) - rej, axis=2)
+            fresh = np.array([not _overlaps(r, quads) for r in rej], bool)
+            # aruco's unrefined quads read a tag ~1 px small: the side check proper comes later
+            rej = rej[(sides.min(axis=1) >= cfg.min_side_px - 2.0) & fresh]
+        else:
+            rej = rej[:0]
+        n = len(quads)
+        everything = np.concatenate([quads, rej])
+        if len(everything) == 0:
+            return [], np.zeros((0, 4, 2))
+        fit = fit_quads(grey, everything, (self.K, self.dist))
+        ok = self._fit_ok(fit, everything)
+        keep = ok[:n] & (self._bit_errors(grey, fit.corners[:n], quads, ids) <= cfg.max_bit_errors)
+        found_ids = [t for t, good in zip(ids, keep) if good]
+        found = [fit.corners[:n][keep]]
+        if ok[n:].any():
+            tid, rolled, errors = identify(grey, fit.corners[n:][ok[n:]], self._codes, self._allowed)
+            good = errors <= cfg.max_bit_errors
+            found_ids += [int(t) for t in tid[good]]
+            found.append(rolled[good])
+        return found_ids, np.concatenate(found).reshape(-1, 4, 2)
+
+    def refine(self, grey: np.ndarray, ids: Sequence[int], quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Edge-fitted corners of quads of known ids and whether each passed every check."""
+        fit = fit_quads(grey, quads, (self.K, self.dist))
+        errors = self._bit_errors(grey, fit.corners, quads, ids)
+        return fit.corners, self._fit_ok(fit, quads) & (errors <= self.config.max_bit_errors)
+
+    def _bit_errors(self, grey: np.ndarray, refined: np.ndarray, quads: np.ndarray, ids: Sequence[int]) -> np.ndarray:
+        """Cells (of 64) that disagree with each id's pattern, read from the refined quad or from
+        aruco's, whichever reads better: on a 12-15 px tag a cell is 1.5-2 px and a few tenths of a
+        pixel of either quad's error can flip one."""
+        if len(ids) == 0:
+            return np.zeros(0, dtype=int)
+        codes = self._codes[np.asarray(ids)]
+        errors = np.count_nonzero(read_bits(grey, refined)[0] != codes, axis=(1, 2))
+        again = np.flatnonzero(errors > self.config.max_bit_errors)
+        if len(again):
+            errors[again] = np.minimum(errors[again],
+                                       np.count_nonzero(read_bits(grey, quads[again])[0] != codes[again], axis=(1, 2)))
+        return errors
+
+    def _fit_ok(self, fit, quads: np.ndarray) -> np.ndarray:
+        """Every edge fitted and straight, and no corner far from where the detector put it."""
+        cfg = self.config
+        side = np.mean(np.linalg.norm(np.roll(fit.corners, -1, axis=1) - fit.corners, axis=2), axis=1)
+        shift = np.max(np.linalg.norm(fit.corners - quads, axis=2), axis=1)
+        with np.errstate(invalid="ignore"):
+            return (fit.edges_fitted.all(axis=1)
+                    & (np.nanmax(np.where(fit.edges_fitted, fit.rms_px, np.inf), axis=1) <= cfg.max_edge_rms_px)
+                    & (shift <= np.maximum(cfg.max_corner_shift_px, 0.2 * side)))
 
     def _pose(self, tid: int, corners: np.ndarray, predict) -> Detection | None:
         cfg = self.config
@@ -176,27 +222,26 @@ class TagDetector:
         if n == 0:
             return None
         errs = np.asarray(errs, dtype=float).reshape(-1)
-        cands = []
-        for rv, tv, e in zip(rvecs, tvecs, errs):
-            R, _ = cv2.Rodrigues(rv)
-            # with these object points the solved frame already is the paper's tag frame
-            cands.append((float(e), Pose3(Rot3(R), np.asarray(tv, dtype=float).reshape(3))))
-        order = np.argsort([e for e, _ in cands])
-        best_e, best = cands[order[0]]
-        ratio = (cands[order[1]][0] / max(best_e, 1e-9)) if len(cands) > 1 else float("inf")
+        order = np.argsort(errs)
+        ratio = float(errs[order[1]] / max(errs[order[0]], 1e-9)) if n > 1 else float("inf")
+        # with these object points the solved frame already is the paper's tag frame
+        pose = lambda i: Pose3(Rot3(cv2.Rodrigues(rvecs[i])[0]), np.asarray(tvecs[i], dtype=float).reshape(3))  # noqa: E731
+        best_i = int(order[0])
         ambiguous = False
-        if len(cands) > 1 and ratio < cfg.ambiguity_ratio:
+        if n > 1 and ratio < cfg.ambiguity_ratio:
             expected = predict(tid) if predict is not None else None
             if expected is not None:
-                def rot_dist(p: Pose3) -> float:
-                    return float(np.linalg.norm(Rot3.Logmap(expected.rotation().between(p.rotation()))))
-                best_e, best = min(cands, key=lambda c: rot_dist(c[1]))
+                def rot_dist(i: int) -> float:
+                    return float(np.linalg.norm(Rot3.Logmap(expected.rotation().between(pose(i).rotation()))))
+                best_i = min(range(n), key=rot_dist)
             else:
                 ambiguous = True
+        best_e = float(errs[best_i])
         if best_e > cfg.max_reprojection_px:
             return None
+        best = pose(best_i)
         cov = self._covariance(best, size, sides.mean(), best_e)
-        return Detection(tid, corners, best, cov, best_e, float(ratio), ambiguous, size)
+        return Detection(tid, corners, best, cov, best_e, ratio, ambiguous, size)
 
     def measurement_covariance(self, camera_T_tag: Pose3, size_m: float, side_px: float,
                                reprojection_px: float = 0.0) -> np.ndarray:
@@ -207,12 +252,12 @@ class TagDetector:
     def _covariance(self, camera_T_tag: Pose3, size: float, side_px: float, reproj_px: float) -> np.ndarray:
         f = 0.5 * (self.K[0, 0] + self.K[1, 1])
         s_px = max(self.config.corner_sigma_px, reproj_px)
-        t = camera_T_tag.translation()
-        d = float(np.linalg.norm(t))
+        M = camera_T_tag.matrix()
+        R, t = M[:3, :3], M[:3, 3]
+        d = float(np.sqrt(t @ t))
+        los = t / max(d, 1e-9)
         # viewing angle between the tag normal and the line of sight
-        normal = camera_T_tag.rotation().matrix()[:, 2]
-        cos_a = abs(float(np.dot(normal, -t / max(d, 1e-9))))
-        cos_a = max(cos_a, 0.2)
+        cos_a = max(abs(float(R[:, 2] @ los)), 0.2)
         lateral = d * s_px / f
         depth = d * d * s_px * math.sqrt(2.0) / (f * size)
         rot = s_px * math.sqrt(2.0) / max(side_px, 1.0)          # about the line of sight
@@ -220,16 +265,17 @@ class TagDetector:
         # by side * (size / 2) * sin(tilt) / d, so a frontal tag's tilt is poorly determined
         tilt = s_px * math.sqrt(2.0) * d / (max(side_px, 1.0) * 0.5 * size)
         # camera-frame translation covariance (depth along the line of sight), then into the tag frame
-        los = t / max(d, 1e-9)
-        P = np.eye(3) - np.outer(los, los)
-        cov_t_cam = lateral ** 2 * P + depth ** 2 * np.outer(los, los)
-        R = camera_T_tag.rotation().matrix()
+        L = np.outer(los, los)
+        cov_t_cam = lateral ** 2 * (np.identity(3) - L) + depth ** 2 * L
         cov_t = R.T @ cov_t_cam @ R
         # rotation: tilt about the tag's in-plane axes is the weak direction when foreshortened
         sin_a = math.sqrt(max(0.0, 1.0 - cos_a * cos_a))
         tilt = 1.0 / math.hypot(1.0 / tilt, sin_a / (rot / cos_a))    # oblique views see tilt better
-        cov_r = np.diag([tilt ** 2, tilt ** 2, rot ** 2])
         cov = np.zeros((6, 6))
-        cov[:3, :3] = cov_r
-        cov[3:, 3:] = cov_t + np.eye(3) * 1e-10
+        cov[0, 0] = cov[1, 1] = tilt ** 2
+        cov[2, 2] = rot ** 2
+        cov[3:, 3:] = cov_t
+        cov[3, 3] += 1e-10
+        cov[4, 4] += 1e-10
+        cov[5, 5] += 1e-10
         return cov

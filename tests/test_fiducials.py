@@ -71,23 +71,25 @@ def test_tags_of_unknown_size_are_ignored():
 def test_a_prediction_settles_the_ippe_ambiguity(detector):
     # A small, nearly frontal tag far away: the two IPPE solutions fit the corners about equally
     # well (a mirror tilt), so the reprojection ratio alone cannot decide.
-    T = facing([0.1, 0.05, 3.0], tilt_deg=10)
+    T = facing([0.1, 0.05, 5.0], tilt_deg=5)
+    mirror = facing([0.1, 0.05, 5.0], tilt_deg=-5)
     flagged = 0
-    for seed in range(6):
+    for seed in range(8):
         img = render([(5, T)], seed)
         (plain,) = detector.detect(img)
         if plain.ambiguity_ratio < detector.config.ambiguity_ratio:
             assert plain.ambiguous  # undecided without a prediction, and it says so
             flagged += 1
         (helped,) = detector.detect(img, predict=lambda tid: T)
-        assert not helped.ambiguous
-        assert pose_error(helped.camera_T_tag, T)[1] < math.radians(4.0)
-        # a prediction near the mirror solution picks the mirror: the prediction is what decides
-        mirror = facing([0.1, 0.05, 3.0], tilt_deg=-10)
         (misled,) = detector.detect(img, predict=lambda tid: mirror)
-        if helped.ambiguity_ratio < detector.config.ambiguity_ratio:
+        assert not helped.ambiguous and not misled.ambiguous
+        if plain.ambiguous:
+            # the prediction decides: near the truth it picks the truth's side (within the noise of
+            # an 18 px tag's tilt), near the mirror the mirror's
+            assert pose_error(helped.camera_T_tag, T)[1] < pose_error(helped.camera_T_tag, mirror)[1]
+            assert pose_error(helped.camera_T_tag, T)[1] < math.radians(4.0)
             assert pose_error(misled.camera_T_tag, mirror)[1] < pose_error(misled.camera_T_tag, T)[1]
-    assert flagged >= 3  # the case really is ambiguous most of the time
+    assert flagged >= 3  # the case really is ambiguous often
 
 
 def test_covariance_grows_with_distance_and_viewing_angle(detector):
@@ -100,3 +102,49 @@ def test_covariance_grows_with_distance_and_viewing_angle(detector):
     assert np.all(far[:3] > near[:3])                      # and every rotation axis
     frontal, oblique = sigmas(1.5, 0), sigmas(1.5, 60)
     assert oblique[2] > frontal[2]                         # in-plane rotation: the tag looks smaller
+
+
+def test_corners_are_unbiased_on_noise_free_renders(detector):
+    """On noise-free renders (blur only) the edge fit leaves no error that depends on where an edge
+    falls within a pixel: what remains is the 8-bit rounding of the image (~0.002 px).  The 50 %
+    crossing of an interpolated profile, which the detector used before, is off by up to 0.1 px
+    (rms 0.03-0.06) in a pattern set by each edge's sub-pixel phase."""
+    rng = np.random.default_rng(7)
+    errs = []
+    for k in range(4):
+        tags = {i: facing([rng.uniform(-0.4, 0.4), rng.uniform(-0.2, 0.2), rng.uniform(1.0, 2.5)],
+                          rng.uniform(-45, 45), rng.uniform(0, 360)) for i in range(3 * k, 3 * k + 3)}
+        img = render_tags(K, DIST, W, H, [(i, SIZE, T) for i, T in tags.items()], noise_sigma=0.0, rng=rng)
+        dets = detector.detect(img)
+        assert sorted(d.tag_id for d in dets) == sorted(tags)
+        errs += [d.corners_px - tag_corners_px(K, tags[d.tag_id], SIZE, DIST) for d in dets]
+    e = np.concatenate(errs)
+    assert np.sqrt(np.mean(np.sum(e ** 2, axis=1))) < 0.008 and np.abs(e).max() < 0.02, np.abs(e).max()
+
+
+def test_a_frontal_tag_reads_frontal_from_one_noise_free_view(detector):
+    # A frontal tag's tilt shows only through the perspective difference of its near and far edges:
+    # at 2 m a 1 deg tilt changes them by 0.04 px.  With unbiased corners the tilt read from one
+    # noise-free view is a few tenths of a degree (the image's 8-bit rounding); before, 1.7 deg.
+    rng = np.random.default_rng(8)
+    tilts = []
+    for _ in range(8):
+        T = facing([rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03), 2.0], 0.0, rng.uniform(0, 360))
+        (d,) = detector.detect(render_tags(K, DIST, W, H, [(2, SIZE, T)], noise_sigma=0.0, rng=rng),
+                               predict=lambda tid, T=T: T)
+        n_true, n_est = T.rotation().matrix()[:, 2], d.camera_T_tag.rotation().matrix()[:, 2]
+        tilts.append(math.degrees(math.acos(min(1.0, float(n_true @ n_est)))))
+    assert np.median(tilts) < 0.8 and max(tilts) < 1.2, tilts
+
+
+def test_tags_touching_the_frame_border_are_found(detector):
+    # aruco's default drops a marker within 3 px of the border; the lab's tags run off the frame
+    # as the turntable turns
+    x = K[0, 2]
+    for _ in range(4):                                  # the leftmost corner 0.3 px inside the frame
+        u = np.linalg.solve(K, [x, K[1, 2], 1.0])
+        T = facing(1.5 * u / u[2], 20, 30)
+        x += -0.5 + 0.3 - tag_corners_px(K, T, SIZE, DIST)[:, 0].min()
+    assert abs(tag_corners_px(K, T, SIZE, DIST)[:, 0].min() + 0.2) < 0.05
+    (d,) = detector.detect(render([(4, T)]))
+    assert np.max(np.linalg.norm(d.corners_px - tag_corners_px(K, T, SIZE, DIST), axis=1)) < 0.2

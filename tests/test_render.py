@@ -116,3 +116,45 @@ def test_bad_input_is_named():
         clean([(1, 0.0, facing([0, 0, 1]))])
     with pytest.raises(ValueError, match="background image is 10x10"):
         render_tags(K, None, W, H, [], background=np.zeros((10, 10), np.uint8))
+
+
+def frontal_K(edge_x: float, size: float = 0.10, distance: float = 1.0) -> np.ndarray:
+    """Intrinsics that put a frontal tag's left black edge (tag centred on the axis) at column `edge_x`."""
+    f = 914.0
+    return np.array([[f, 0.0, edge_x + f * size / 2 / distance], [0.0, f, 359.5], [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize("edge_x, want", [(600.0, 0.5), (600.25, 0.75), (599.75, 0.25), (600.5, 1.0)])
+def test_a_pixel_reads_the_share_of_its_area_the_quiet_zone_covers(edge_x, want):
+    # No blur: the pixel centred on x = 600 spans 599.5..600.5; left of the black square's left edge
+    # is the white quiet zone, so it reads white in proportion to the part of it left of the edge
+    # (half-covered: half grey).  Point-sampling a warped texture reads 0 or 1 here, or an
+    # interpolated value that depends on the texture's own grid.
+    K = frontal_K(edge_x)
+    T = facing([0.0, 0.0, 1.0])
+    img = render_tags(K, None, W, H, [(3, 0.10, T)], background=BG, black_level=BLACK, white_level=WHITE,
+                      blur_sigma_px=0.0, noise_sigma=0.0)[:, :, 0].astype(float)
+    row = 360          # the tag's middle row: the left border cell is black all the way down
+    assert abs(img[row, 600] - (BLACK + want * (WHITE - BLACK))) <= 0.5   # 8-bit rounding
+
+
+@pytest.mark.parametrize("blur", [0.0, 0.6, 1.2])
+def test_a_row_across_an_edge_sums_to_the_length_on_each_side(blur):
+    """What the detector's edge fit relies on: across a straight edge, a row of area-integrating
+    pixels normalised to 0 (black) .. 1 (white) sums to the length of the row on the white side,
+    whatever the edge's sub-pixel position and the (symmetric) blur."""
+    rng = np.random.default_rng(11)
+    for _ in range(6):
+        K = frontal_K(600.0 + rng.uniform(0, 1))
+        T = facing([0.0, 0.0, 1.0], yaw=rng.uniform(-0.2, 0.2))     # tilted edges: phase varies by row
+        img = render_tags(K, None, W, H, [(3, 0.10, T)], background=BG, black_level=BLACK, white_level=WHITE,
+                          blur_sigma_px=blur, noise_sigma=0.0)[:, :, 0].astype(float)
+        c = tag_corners_px(K, T, 0.10)
+        # the left edge runs from corner 3 (bottom-left) to corner 0 (top-left)
+        for row in range(330, 391, 6):
+            t = (row - c[3, 1]) / (c[0, 1] - c[3, 1])
+            x_edge = c[3, 0] + t * (c[0, 0] - c[3, 0])
+            k0, k1 = int(round(x_edge)) - 5, int(round(x_edge)) + 5        # white .. black
+            white_len = np.sum((img[row, k0:k1 + 1] - BLACK) / (WHITE - BLACK))
+            # 8-bit rounding of 11 pixels can add up to ~0.01
+            assert abs(white_len - (x_edge - (k0 - 0.5))) < 0.02, (row, white_len, x_edge - (k0 - 0.5))

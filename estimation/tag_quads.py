@@ -1,0 +1,510 @@
+"""Sub-pixel tag quads: the black square's four edges located to a few hundredths of a pixel, and
+the tag's bits read back from the refined quad.
+
+Edge location (`fit_quads`).  A camera pixel reads the scene integrated over its area, after a
+blur that is symmetric about each point.  Across a straight dark-to-bright edge, the sum of a row
+of pixels normalised to 0 (dark) .. 1 (bright) is then exactly the length of the row that lies on
+the bright side: summing over pixels integrates the pixel box, and a box sums to the integral of
+what it samples whatever the edge's sub-pixel phase (its spectrum is zero at every multiple of the
+sampling frequency).  So along every image row (for edges steeper than 45 deg; columns for the
+others) that crosses an edge, a window of pixels centred on the edge gives the crossing as
+`window end - sum`, with no dependence on where the edge falls within a pixel and no model of the
+blur; a straight line fitted through the crossings of all usable rows is the edge, and adjacent
+edges intersect at the corners.  The 50 % crossing of an interpolated profile (what we used
+before) is biased by up to 0.1 px depending on that phase, and a frontal tag read that way looks
+tilted by a degree or more.
+
+What keeps other structure out of the windows: they reach at most one cell minus 2.5 px across the
+edge (the black border cell inside, the white quiet zone outside, clear of the next edges' blur),
+symmetric about the current line so that truncated blur tails cancel and passes converge; rows
+within a window's reach of a corner are left out.  The dark and bright levels are the edge's mean
+half a cell inside and outside it, or its tag's black and white for cells under 4 px.  A window off
+the image on the dark side loses its row; on the bright side (a tag touching the frame) the quiet
+zone is taken to go on past the edge.  Tags with cells under 4.5 px start with a coarse pass (the
+steepest dark-to-bright step within 1.5 cells), which pulls in a detector's corner 2-3 px off; fine
+passes follow until no corner moves more than CONVERGED_PX.  An edge with fewer than `MIN_ROWS`
+usable rows keeps the line it came with (and its quad is reported as not fully fitted).
+
+Bit reading (`read_bits`, `identify`): the 8x8 cells and the quiet-zone ring around them sampled at
+their centres through the quad's homography, sharpened, and thresholded halfway between planes
+fitted to the black border and to the white ring, as the AprilTag library does; a detection is
+then checked against the dictionary with a Hamming distance of our choosing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+__all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "identify", "MIN_ROWS"]
+
+CELLS = 8                 # AprilTag 36h11: 6x6 data cells inside a one-cell black border
+MIN_ROWS = 3              # an edge needs this many usable rows (or columns) to be refitted
+MIN_CONTRAST = 8.0        # grey levels between the dark and bright sides of a usable edge
+MAX_REACH_PX = 2.5        # window half-width across an edge (3 sigma of the sim's blur and pixel)
+MIN_REACH_PX = 1.0
+COARSE_SEARCH_PX = 3.0    # how far the first pass looks for an edge (a detector's corners can be 2-3 px off)
+COARSE_SEARCH_CELLS = 1.5  # ... or 1.5 cells: the inner pattern's and quiet zone's edges step the other way
+COARSE_BELOW_CELL_PX = 4.5  # tags with smaller cells start with a coarse pass
+SHARPEN = 0.25            # Laplacian sharpening of the cell samples before reading bits (AprilTag's default)
+CONVERGED_PX = 0.1        # a fine pass that moved no corner more than this ends a quad's refinement
+EDGE_LEVELS_MIN_CELL_PX = 4.0   # smaller cells: an edge's dark/bright levels are its tag's
+
+
+@dataclass(frozen=True)
+class QuadFit:
+    corners: np.ndarray        # (N, 4, 2) refined corners, input order
+    edges_fitted: np.ndarray   # (N, 4) bool: edge i (corner i -> i+1) was refitted
+    rms_px: np.ndarray         # (N, 4) rms of the row crossings about each fitted line (nan if not fitted)
+    corner_sigma_px: np.ndarray  # (N, 4) each corner's standard error from its two lines' fits (nan: unfitted)
+
+
+def _lines_from_corners(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Edge i of each quad as (a point on it, unit direction), edge i from corner i to i+1."""
+    d = np.roll(q, -1, axis=1) - q
+    return q.copy(), d / np.linalg.norm(d, axis=2, keepdims=True)
+
+
+def _intersect(p: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Corner i = edge i-1 crossed with edge i."""
+    pa, da = np.roll(p, 1, axis=1), np.roll(d, 1, axis=1)
+    cross = da[..., 0] * d[..., 1] - da[..., 1] * d[..., 0]
+    w = p - pa
+    t = (w[..., 0] * d[..., 1] - w[..., 1] * d[..., 0]) / np.where(np.abs(cross) > 1e-9, cross, np.nan)
+    return pa + t[..., None] * da
+
+
+def _bilinear(g: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    H, W = g.shape
+    x = np.clip(x, 0.0, W - 1.001)
+    y = np.clip(y, 0.0, H - 1.001)
+    x0 = x.astype(np.int64)
+    y0 = y.astype(np.int64)
+    fx, fy = x - x0, y - y0
+    flat = g.ravel()
+    i = y0 * W + x0
+    return ((flat[i] * (1 - fx) + flat[i + 1] * fx) * (1 - fy)
+            + (flat[i + W] * (1 - fx) + flat[i + W + 1] * fx) * fy)
+
+
+def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None, coarse: bool
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One pass over every edge of every quad: each edge as a line (point, unit direction) in ideal
+    pinhole pixels (image pixels without `camera`), whether it was fitted, the rms of its crossings
+    about it (px), and its fit's statistics for `_corner_sigma` (N, 4, 3).  `coarse`: find each row's crossing as the steepest dark-to-bright step
+    within a wider search (COARSE_SEARCH_PX), to pull in a detector's corner that is pixels off."""
+    H, W = grey.shape
+    flat = grey.ravel()
+    N = len(q)
+    E = N * 4
+    p_in, d_in = _lines_from_corners(_undistort(q, camera))
+    seg = np.roll(q, -1, axis=1) - q                                  # (N, 4, 2)
+    length = np.linalg.norm(seg, axis=2)
+    u = seg / length[..., None]
+    n_out = np.stack([u[..., 1], -u[..., 0]], axis=2)                 # outward: clockwise quads, y down
+    # one cell across each edge, measured along the adjacent edges
+    prev_seg, next_seg = np.roll(seg, 1, axis=1), np.roll(seg, -1, axis=1)
+    cell = np.minimum(np.abs(np.sum(prev_seg * n_out, axis=2)), np.abs(np.sum(next_seg * n_out, axis=2))) / CELLS
+    # how far a window reaches across the edge: its end pixels (which see half a pixel farther)
+    # must stay clear of the next cell's edge and its blur
+    reach = np.clip(cell - 2.5, MIN_REACH_PX, MAX_REACH_PX)
+    if coarse:   # the inner pattern's and the quiet zone's edges step the other way: no confusion
+        reach = np.clip(COARSE_SEARCH_CELLS * cell, MIN_REACH_PX, COARSE_SEARCH_PX)
+    cross2 = lambda a, b: a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]  # noqa: E731
+    sin_end = np.maximum(np.minimum(np.abs(cross2(np.roll(u, 1, axis=1), u)), np.abs(cross2(u, np.roll(u, -1, axis=1)))), 0.3)
+
+    rows_axis = np.abs(u[..., 1]) >= np.abs(u[..., 0])                # steep edges: scan image rows
+    # scan coordinates: s along the scan (x for rows, y for columns), r the row/column index
+    s_idx = np.where(rows_axis, 0, 1)
+    r_idx = 1 - s_idx
+    take = lambda a, i: np.take_along_axis(a, i[..., None], axis=2)[..., 0]  # noqa: E731
+    q1 = np.roll(q, -1, axis=1)
+    ps, pr, qs, qr = take(q, s_idx), take(q, r_idx), take(q1, s_idx), take(q1, r_idx)
+    ns = take(n_out, s_idx)                                            # normal's scan component, |ns| >= 0.707
+    A = reach / np.abs(ns)                                             # window half-width along the scan
+    # rows kept clear of the corners: the window's reach, the blur of the adjacent edge, and a
+    # little more on long edges (printed corners are rarely sharp)
+    margin = (reach + 1.5) / sin_end + 0.02 * length                  # px along the edge
+    ur = np.abs(take(u, r_idx))
+    r_lo = np.ceil(np.minimum(pr, qr) + margin * ur)
+    r_hi = np.floor(np.maximum(pr, qr) - margin * ur)
+    count = np.maximum(r_hi - r_lo + 1, 0).astype(np.int64).ravel()
+    edge_of = np.repeat(np.arange(E), count)
+    if edge_of.size == 0:   # quads too small for a single row clear of their corners
+        return p_in, d_in, np.zeros((N, 4), bool), np.full((N, 4), np.nan), np.zeros((N, 4, 3))
+    start = np.repeat(np.cumsum(count) - count, count)
+    r = r_lo.ravel()[edge_of] + (np.arange(edge_of.size) - start)
+    slope = ((qs - ps) / np.where(qr != pr, qr - pr, np.nan)).ravel()
+    s_line = ps.ravel()[edge_of] + (r - pr.ravel()[edge_of]) * slope[edge_of]
+    Ae = A.ravel()[edge_of]
+    sgn = np.sign(ns.ravel())[edge_of]
+    centre = np.rint(np.nan_to_num(s_line))
+    m_max = int(np.ceil(A.max() + 0.5))
+    k = np.arange(-m_max, m_max + 1)
+    s_pix = centre[:, None] + k[None, :]                               # (rows, 2 m_max + 1)
+    # each pixel's overlap with the window [s_line - A, s_line + A]: a window symmetric about the
+    # line, so truncated tails of the blur cancel and the passes converge on the edge
+    lo = np.maximum(s_pix - 0.5, (s_line - Ae)[:, None])
+    hi = np.minimum(s_pix + 0.5, (s_line + Ae)[:, None])
+    wgt = np.clip(hi - lo, 0.0, 1.0)
+    use_rows = rows_axis.ravel()[edge_of][:, None]
+    ri = r.astype(np.int64)[:, None]
+    si = s_pix.astype(np.int64)
+    x = np.where(use_rows, si, ri)
+    y = np.where(use_rows, ri, si)
+    inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
+    # a tag touching the frame: the quiet zone is taken to go on past the edge of the image (pixels
+    # off the image on the bright side read bright); off the image on the dark side, the row is lost
+    bright_side = (s_pix - s_line[:, None]) * sgn[:, None] > 0
+    row_ok = np.all(inside | (wgt == 0) | bright_side, axis=1) & np.isfinite(s_line)
+    vals = flat[np.clip(y, 0, H - 1) * W + np.clip(x, 0, W - 1)].astype(np.float64)
+    # dark and bright levels of each edge: half a cell inside (the black border) and outside (the
+    # quiet zone) along the normal, averaged over the edge's rows
+    n_img = n_out.reshape(-1, 2)[edge_of]
+    on_line = np.where(use_rows, np.column_stack([s_line, r]), np.column_stack([r, s_line]))
+    half_cell = (0.5 * cell).ravel()[edge_of][:, None]
+    p_dark = on_line - half_cell * n_img
+    p_bright = on_line + half_cell * n_img
+    in_img = lambda p: (p[:, 0] >= 0) & (p[:, 0] <= W - 1) & (p[:, 1] >= 0) & (p[:, 1] <= H - 1)  # noqa: E731
+    lvl_ok = (in_img(p_dark) & in_img(p_bright) & np.isfinite(s_line)).astype(np.float64)
+    n_lvl = np.bincount(edge_of, weights=lvl_ok, minlength=E)
+    sum_dark = np.bincount(edge_of, lvl_ok * _bilinear(grey, p_dark[:, 0], p_dark[:, 1]), E)
+    sum_bright = np.bincount(edge_of, lvl_ok * _bilinear(grey, p_bright[:, 0], p_bright[:, 1]), E)
+    # small cells put those samples inside the blur of the edge itself, and an edge along the image
+    # border has none: such edges take their tag's levels, the two clusters of its cells' centres
+    own = (n_lvl >= MIN_ROWS) & (cell.ravel() >= EDGE_LEVELS_MIN_CELL_PX)
+    tag_dark, tag_bright = np.full(N, np.nan), np.full(N, np.nan)
+    need = ~own.reshape(N, 4).all(axis=1)
+    if need.any():
+        tag_dark[need], tag_bright[need] = _tag_levels(grey, q[need])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dark = np.where(own, sum_dark / n_lvl, np.repeat(tag_dark, 4))
+        bright = np.where(own, sum_bright / n_lvl, np.repeat(tag_bright, 4))
+    contrast = bright - dark
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # an edge without contrast gives NaN, never inf (its rows are dropped below)
+        fn = (vals - dark[edge_of, None]) / np.where(contrast > 0, contrast, np.nan)[edge_of, None]
+        fn = np.where(inside, fn, 1.0)
+    if coarse:
+        step = sgn[:, None] * np.diff(fn, axis=1)                      # dark-to-bright steps, at k + 0.5
+        step = np.where((wgt[:, 1:] > 0) & (wgt[:, :-1] > 0), step, -np.inf)
+        j = np.clip(np.argmax(step, axis=1), 1, step.shape[1] - 2)
+        rows_i = np.arange(len(j))
+        y0, y1, y2 = step[rows_i, j - 1], step[rows_i, j], step[rows_i, j + 1]
+        y0 = np.where(np.isfinite(y0), y0, y1)
+        y2 = np.where(np.isfinite(y2), y2, y1)
+        den = y0 - 2 * y1 + y2
+        frac = np.where(den < -1e-9, 0.5 * (y0 - y2) / np.where(den < -1e-9, den, 1.0), 0.0)
+        cross = s_pix[rows_i, j] + 0.5 + np.clip(frac, -0.5, 0.5)
+        row_ok &= y1 >= 0.25
+    else:
+        bright_len = np.sum(wgt * fn, axis=1)                          # px of the window on the bright side
+        cross = np.where(sgn > 0, s_line + Ae - bright_len, s_line - Ae + bright_len)
+    row_ok &= np.abs(cross - s_line) <= Ae                             # the crossing lies within its window
+    row_ok &= (contrast >= MIN_CONTRAST)[edge_of]
+
+    # the crossings as image points, then straight lines through them where straight lines are
+    # straight: in the ideal pinhole image when the lens is known
+    pts = np.where(use_rows, np.column_stack([cross, r]), np.column_stack([r, cross]))
+    pts = _undistort(np.nan_to_num(pts), camera, (H, W))
+    X, Y = pts[:, 0], pts[:, 1]
+    keep = row_ok.copy()
+    for _ in range(2):                                                 # fit, drop crossings > 3 rms off, refit
+        w = keep.astype(np.float64)
+        S1 = np.bincount(edge_of, w, E)
+        fitted = S1 >= MIN_ROWS
+        S1 = np.maximum(S1, 1.0)
+        mx = np.bincount(edge_of, w * X, E) / S1
+        my = np.bincount(edge_of, w * Y, E) / S1
+        dx, dy = X - mx[edge_of], Y - my[edge_of]
+        cxx = np.bincount(edge_of, w * dx * dx, E)
+        cxy = np.bincount(edge_of, w * dx * dy, E)
+        cyy = np.bincount(edge_of, w * dy * dy, E)
+        theta = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)                 # the line's direction (total least squares)
+        res = -dx * np.sin(theta)[edge_of] + dy * np.cos(theta)[edge_of]
+        rms = np.sqrt(np.bincount(edge_of, w * res * res, E) / S1)
+        keep = row_ok & (np.abs(res) <= np.maximum(3.0 * rms[edge_of], 0.1))
+    pt = np.column_stack([mx, my])
+    dr = np.column_stack([np.cos(theta), np.sin(theta)])
+    dr *= np.where(np.sum(dr * d_in.reshape(-1, 2), axis=1) < 0, -1.0, 1.0)[:, None]   # keep corner i -> i+1
+    fitted = fitted.reshape(N, 4)
+    p = np.where(fitted[..., None], pt.reshape(N, 4, 2), p_in)
+    d = np.where(fitted[..., None], dr.reshape(N, 4, 2), d_in)
+    # the fitted line's standard error at distance T from its centroid is r sqrt(1/n + T^2 / (n var_t))
+    # (r: the crossings' scatter with 2 dof spent, var_t: their spread along the line)
+    t_along = dx * np.cos(theta)[edge_of] + dy * np.sin(theta)[edge_of]
+    var_t = np.bincount(edge_of, w * t_along * t_along, E) / S1
+    n = np.bincount(edge_of, w, E)
+    r_eff = np.maximum(rms * np.sqrt(n / np.maximum(n - 2, 1)), 0.02)
+    stats = np.stack([r_eff, n, var_t], axis=1).reshape(N, 4, 3)
+    return p, d, fitted, np.where(fitted, rms.reshape(N, 4), np.nan), stats
+
+
+def _corner_sigma(p: np.ndarray, d: np.ndarray, corners: np.ndarray, stats: np.ndarray) -> np.ndarray:
+    """(N, 4) standard error of each corner: its two lines' errors at the corner, over the sine of
+    the angle between them."""
+    r, n, var_t = stats[..., 0], np.maximum(stats[..., 1], 1), np.maximum(stats[..., 2], 1e-9)
+
+    idx = np.arange(4)
+    prev = (idx - 1) % 4
+    s_this = r * np.sqrt(1.0 / n + np.sum((corners - p) * d, axis=-1) ** 2 / (n * var_t))
+    s_prev = (r[:, prev] * np.sqrt(1.0 / n[:, prev] + np.sum((corners - p[:, prev]) * d[:, prev], axis=-1) ** 2
+                                   / (n[:, prev] * var_t[:, prev])))
+    sin = np.abs(d[:, prev, 0] * d[..., 1] - d[:, prev, 1] * d[..., 0])
+    return np.sqrt(s_this ** 2 + s_prev ** 2) / np.maximum(sin, 0.2)
+
+
+@lru_cache(maxsize=4)
+def _undistort_map(K_key: bytes, dist_key: bytes, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Ideal pinhole x and y of every pixel centre of a (height, width) image, each flattened:
+    interpolating them is faster than undistorting each point and exact to ~1e-5 px."""
+    K = np.frombuffer(K_key, dtype=np.float64).reshape(3, 3)
+    dist = np.frombuffer(dist_key, dtype=np.float64)
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    pix = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
+    out = cv2.undistortPointsIter(pix, K, dist, None, K, (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-9))
+    out = out.reshape(-1, 2)
+    return np.ascontiguousarray(out[:, 0]), np.ascontiguousarray(out[:, 1])
+
+
+def _undistort(pts: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None,
+               shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Image pixels -> ideal pinhole pixels of the same camera (unchanged without a camera).  With
+    the image's `shape`, through the cached map of the whole frame."""
+    if camera is None or not np.any(camera[1]) or np.size(pts) == 0:
+        return np.asarray(pts, dtype=np.float64)
+    K, dist = camera
+    K = np.ascontiguousarray(K, dtype=np.float64)
+    dist = np.ascontiguousarray(dist, dtype=np.float64).ravel()
+    p = np.asarray(pts, np.float64).reshape(-1, 2)
+    if shape is not None:
+        H, W = shape
+        inside = (p[:, 0] >= 0) & (p[:, 0] <= W - 1) & (p[:, 1] >= 0) & (p[:, 1] <= H - 1)
+        if inside.all():
+            mx, my = _undistort_map(K.tobytes(), dist.tobytes(), W, H)
+            x0 = np.minimum(p[:, 0].astype(np.int64), W - 2)
+            y0 = np.minimum(p[:, 1].astype(np.int64), H - 2)
+            fx = p[:, 0] - x0
+            fy = p[:, 1] - y0
+            i = y0 * W + x0
+            out = np.empty_like(p)
+            for c, m in enumerate((mx, my)):
+                a, b = np.take(m, i), np.take(m, i + 1)
+                cc, d = np.take(m, i + W), np.take(m, i + W + 1)
+                out[:, c] = (a + (b - a) * fx) * (1 - fy) + (cc + (d - cc) * fx) * fy
+            return out.reshape(np.shape(pts))
+    out = cv2.undistortPointsIter(p.reshape(-1, 1, 2), K, dist, None, K,
+                                  (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-9))
+    return out.reshape(np.shape(pts))
+
+
+def _distort(pts: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """Ideal pinhole pixels -> image pixels."""
+    if camera is None or not np.any(camera[1]) or pts.size == 0:
+        return pts
+    K, dist = camera
+    shape = pts.shape
+    xy = (np.asarray(pts, np.float64).reshape(-1, 2) - K[:2, 2]) / np.diag(K)[:2]
+    obj = np.column_stack([xy, np.ones(len(xy))])
+    out, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, dist)
+    return out.reshape(shape)
+
+
+def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None = None,
+              passes: int = 3) -> QuadFit:
+    """Refine the quads (N, 4, 2; corners clockwise in the image as aruco returns them) of tags in a
+    grey image (2-D, any numeric type) by fitting each edge: a coarse pass first for small tags
+    (their windows are too short to pull in a corner a pixel or two off), then up to `passes` fine
+    ones, until no corner moves more than CONVERGED_PX; see the module's docstring.  With
+    `camera` = (K, dist) the edges are fitted as straight lines in the undistorted image (lens
+    distortion bends them by tenths of a pixel over a near tag)."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    g = np.ascontiguousarray(grey, dtype=np.float32)
+    N = len(q)
+    rms = np.full((N, 4), np.nan)
+    sigma = np.full((N, 4), np.nan)
+    fitted_any = np.zeros((N, 4), bool)
+    cur = q.copy()
+    side = np.linalg.norm(np.roll(q, -1, axis=1) - q, axis=2).min(axis=1) if N else np.zeros(0)
+    coarse_first = side / CELLS < COARSE_BELOW_CELL_PX
+    active = np.ones(N, bool)
+
+    def step(idx: np.ndarray, coarse: bool) -> np.ndarray:
+        """One pass over the quads `idx`; how far each one's corners moved."""
+        p, d, fitted, rms_pass, stats = _fit_pass(g, cur[idx], camera, coarse)
+        rms[idx] = np.where(fitted, rms_pass, rms[idx])
+        fitted_any[idx] |= fitted
+        ideal = _intersect(p, d)
+        nxt = _distort(ideal, camera)
+        meet = np.all(np.isfinite(nxt), axis=(1, 2))      # lines that no longer meet: keep the quad
+        nxt = np.where(meet[:, None, None], nxt, cur[idx])
+        all_fit = fitted.all(axis=1) & meet
+        s = np.full(fitted.shape, np.nan)
+        s[all_fit] = _corner_sigma(p[all_fit], d[all_fit], ideal[all_fit], stats[all_fit])
+        sigma[idx] = s
+        moved = np.max(np.linalg.norm(nxt - cur[idx], axis=2), axis=1)
+        cur[idx] = nxt
+        return moved
+
+    if coarse_first.any():
+        step(np.flatnonzero(coarse_first), True)
+    for _ in range(passes):
+        idx = np.flatnonzero(active)
+        if len(idx) == 0:
+            break
+        moved = step(idx, False)
+        active[idx[moved < CONVERGED_PX]] = False     # converged: the fine pass contracts the error 10-1000x
+    fitted = fitted_any
+    return QuadFit(cur, fitted, rms, sigma)
+
+
+@lru_cache(maxsize=4)
+def code_bits(dictionary_id: int = cv2.aruco.DICT_APRILTAG_36h11) -> np.ndarray:
+    """(n_ids, 8, 8) bool: every marker of an OpenCV dictionary as printed, border included, True
+    where the cell is white, in the dictionary's own orientation (corner 0 at top-left)."""
+    d = cv2.aruco.getPredefinedDictionary(dictionary_id)
+    n = d.bytesList.shape[0]
+    side = d.markerSize + 2
+    return np.stack([cv2.aruco.generateImageMarker(d, i, side, borderBits=1) > 127 for i in range(n)])
+
+
+def _unit_square_to_quads(q: np.ndarray, uv1: np.ndarray) -> np.ndarray:
+    """Points (P, 3: u, v, 1) of the unit square mapped into every quad (N, 4, 2) by the homography
+    taking its corners (0,0), (1,0), (1,1), (0,1) to the quad's: (N, P, 2).  The N 8x8 systems are
+    solved at once."""
+    N = len(q)
+    A = np.zeros((N, 8, 8))
+    b = q.reshape(N, 8)
+    for i, (u, v) in enumerate(((0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0))):
+        x, y = q[:, i, 0], q[:, i, 1]
+        A[:, 2 * i, 0:3] = (u, v, 1.0)
+        A[:, 2 * i, 6] = -u * x
+        A[:, 2 * i, 7] = -v * x
+        A[:, 2 * i + 1, 3:6] = (u, v, 1.0)
+        A[:, 2 * i + 1, 6] = -u * y
+        A[:, 2 * i + 1, 7] = -v * y
+    h = np.linalg.solve(A, b[..., None])[..., 0]
+    Hm = np.concatenate([h, np.ones((N, 1))], axis=1).reshape(N, 3, 3)
+    p = np.einsum("nij,pj->npi", Hm, uv1)
+    return p[..., :2] / p[..., 2:]
+
+
+def _grid_samples(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """(N, 10, 10) grey levels at the cell centres of each quad's 8x8 cells and of the ring of
+    quiet-zone cells around them (corner 0 = the marker's top-left, row by row), bilinear."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    n = CELLS + 2
+    c = (np.arange(-1, CELLS + 1) + 0.5) / CELLS
+    gu, gv = np.meshgrid(c, c)                                         # u right, v down
+    uv1 = np.column_stack([gu.ravel(), gv.ravel(), np.ones(n * n)])
+    pts = _unit_square_to_quads(q, uv1)
+    return _bilinear(np.asarray(grey, dtype=np.float32), pts[..., 0], pts[..., 1]).reshape(len(q), n, n)
+
+
+def _cell_samples(grey: np.ndarray, quads: np.ndarray, sharpen: float = 0.0) -> np.ndarray:
+    """(N, 64) grey levels at the 8x8 cell centres of each quad (corner 0 = the marker's top-left,
+    row by row).  `sharpen` > 0 subtracts that much of each sample's Laplacian over the grid,
+    undoing some of the blur that mixes neighbouring cells on small tags, as the AprilTag library's
+    decode_sharpening does."""
+    v = _grid_samples(grey, quads)
+    if sharpen > 0:
+        lap = 4 * v[:, 1:-1, 1:-1] - v[:, :-2, 1:-1] - v[:, 2:, 1:-1] - v[:, 1:-1, :-2] - v[:, 1:-1, 2:]
+        return (v[:, 1:-1, 1:-1] + sharpen * lap).reshape(len(v), -1)
+    return v[:, 1:-1, 1:-1].reshape(len(v), -1)
+
+
+@lru_cache(maxsize=1)
+def _ring_models() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares planes over the 10x10 grid: (black ring index, its pseudo-inverse, white ring
+    index, its pseudo-inverse, the 8x8 cells' design) for a + b u + c v fitted to the black border
+    cells and to the white quiet-zone cells."""
+    n = CELLS + 2
+    i, j = np.meshgrid(np.arange(n), np.arange(n))
+    design = np.column_stack([np.ones(n * n), i.ravel() - n / 2, j.ravel() - n / 2])
+    ring = (i == 0) | (j == 0) | (i == n - 1) | (j == n - 1)
+    border = ((i == 1) | (j == 1) | (i == n - 2) | (j == n - 2)) & ~ring
+    inner = ~ring
+    white_idx, black_idx = np.flatnonzero(ring.ravel()), np.flatnonzero(border.ravel())
+    return (black_idx, np.linalg.pinv(design[black_idx]), white_idx, np.linalg.pinv(design[white_idx]),
+            design[np.flatnonzero(inner.ravel())])
+
+
+def _otsu(v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of `v`: (threshold, dark cluster mean, bright cluster mean), the split maximising
+    the between-cluster variance."""
+    n = v.shape[1]
+    srt = np.sort(v, axis=1)
+    k = np.arange(1, n)
+    csum = np.cumsum(srt, axis=1)[:, :-1]
+    total = csum[:, -1:] + srt[:, -1:]
+    m0 = csum / k
+    m1 = (total - csum) / (n - k)
+    best = np.argmax(k * (n - k) * (m1 - m0) ** 2, axis=1)
+    i = np.arange(len(v))
+    return 0.5 * (srt[i, best] + srt[i, best + 1]), m0[i, best], m1[i, best]
+
+
+def _tag_levels(grey: np.ndarray, quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each tag's black and white: the means of the dark and bright clusters of its cell centres."""
+    if len(quads) == 0:
+        return np.zeros(0), np.zeros(0)
+    _, dark, bright = _otsu(_cell_samples(grey, quads))
+    return dark, bright
+
+
+def read_bits(grey: np.ndarray, quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sample the 8x8 cells of each quad (N, 4, 2; corner 0 = the marker's top-left) at their
+    centres, sharpened (SHARPEN), and threshold each halfway between a plane fitted to the black
+    border cells and one fitted to the white quiet-zone cells around them (the AprilTag library's
+    way: light falls unevenly across a tag); where the quiet zone does not read white (no margin,
+    off the image), halfway between the 64 cells' own dark and bright clusters.  Returns (bits
+    (N, 8, 8) bool, True = white; contrast (N,) grey levels between black and white)."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    N = len(q)
+    if N == 0:
+        return np.zeros((0, CELLS, CELLS), bool), np.zeros(0)
+    grid = _grid_samples(grey, q)
+    lap = 4 * grid[:, 1:-1, 1:-1] - grid[:, :-2, 1:-1] - grid[:, 2:, 1:-1] - grid[:, 1:-1, :-2] - grid[:, 1:-1, 2:]
+    v = (grid[:, 1:-1, 1:-1] + SHARPEN * lap).reshape(N, -1)
+    black_idx, black_pinv, white_idx, white_pinv, inner = _ring_models()
+    flat = grid.reshape(N, -1)
+    black = (flat[:, black_idx] @ black_pinv.T) @ inner.T              # (N, 64) modelled black
+    white = (flat[:, white_idx] @ white_pinv.T) @ inner.T
+    thr_model = 0.5 * (black + white)
+    thr_otsu, dark, bright = _otsu(v)
+    ring_ok = (flat[:, white_idx].mean(axis=1) - flat[:, black_idx].mean(axis=1)) > 0.5 * (bright - dark)
+    thr = np.where(ring_ok[:, None], thr_model, thr_otsu[:, None])
+    return (v > thr).reshape(N, CELLS, CELLS), bright - dark
+
+
+def identify(grey: np.ndarray, quads: np.ndarray, codes: np.ndarray, allowed: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which marker each quad (N, 4, 2; clockwise, any starting corner) shows: its cells read with
+    each of the four corners as the top-left, against the patterns `codes` (n_ids, 8, 8) of the ids
+    in `allowed`.  Returns (id, corners rolled so corner 0 is the marker's top-left, cells that
+    disagree with that id's pattern, of 64)."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    N = len(q)
+    allowed = np.asarray(allowed, dtype=np.int64)
+    if N == 0 or allowed.size == 0:
+        return np.zeros(N, np.int64), q, np.full(N, CELLS * CELLS)
+    weights = (np.uint64(1) << np.arange(CELLS * CELLS, dtype=np.uint64))
+    packed = (codes[allowed].reshape(len(allowed), -1).astype(np.uint64) * weights).sum(axis=1)
+    best_err = np.full(N, CELLS * CELLS + 1)
+    best_id = np.zeros(N, np.int64)
+    best_q = q.copy()
+    for r in range(4):
+        qr = np.roll(q, -r, axis=1)
+        bits, _ = read_bits(grey, qr)
+        word = (bits.reshape(N, -1).astype(np.uint64) * weights).sum(axis=1)
+        err = np.bitwise_count(word[:, None] ^ packed[None, :])          # (N, n_allowed)
+        j = np.argmin(err, axis=1)
+        e = err[np.arange(N), j]
+        better = e < best_err
+        best_err = np.where(better, e, best_err)
+        best_id = np.where(better, allowed[j], best_id)
+        best_q[better] = qr[better]
+    return best_id, best_q, best_err
