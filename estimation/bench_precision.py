@@ -36,12 +36,12 @@ TARGETS = ("1P", "2D", "6S")
 
 @dataclass(frozen=True)
 class PrecisionSetup:
-    corner_sigma_px: float = 0.08        # the true face-on corner noise (measured in simulated runs)
-    graph_sigma_px: float = 0.08         # what the graph assumes
+    corner_sigma_px: float = 0.01        # the true face-on corner noise (0.008 measured in simulated runs)
+    graph_sigma_px: float = 0.02         # what the graph assumes (a rig's default [verification] corner_sigma_px)
     camera_sigma_m: float = 0.0001
     camera_sigma_rad: float = math.radians(0.005)
     views_per_step: int = 3
-    sigma_target_m: float = 0.0005       # views are planned until the module's predicted 1-sigma is this
+    sigma_target_m: float = 0.00025      # views are planned until the module's predicted 1-sigma is this
     max_views: int = 12
     tolerance_m: float = 0.005
     tolerance_rad: float = math.radians(1.0)

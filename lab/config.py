@@ -153,9 +153,12 @@ class VerificationConfig:
     tolerances: dict[str, ToleranceConfig] = field(default_factory=lambda: {k: ToleranceConfig() for k in MODULE_KINDS})
     band_sigmas: float = 2.0
     # The planner adds views until the new module's predicted position 1-sigma is this small: at
-    # 0.5 mm a module 1 mm past a 5 mm tolerance (or 2 mm past 1 mm) is 2 sigma clear of it
-    sigma_target_m: float = 0.0005
+    # 0.25 mm a module 1 mm past a 5 mm tolerance (or 2 mm past 1 mm) is 4 sigma clear of it
+    sigma_target_m: float = 0.00025
     max_views: int = 12
+    # the detector's face-on corner accuracy on this rig's camera, what the graph assumes (measure
+    # it: a simulated run reports corner_rms_px against the truth, `lab calibrate rig` its residual)
+    corner_sigma_px: float = 0.02
 
 
 def _verification(t: "_Table") -> VerificationConfig:
@@ -167,8 +170,9 @@ def _verification(t: "_Table") -> VerificationConfig:
                                                                  maximum=90.0)))
         k.done()
     cfg = VerificationConfig(tolerances, t.number("band_sigmas", default=2.0, minimum=0.0, maximum=10.0),
-                             t.number("sigma_target_mm", default=0.5, positive=True, maximum=100.0) * 1e-3,
-                             t.integer("max_views", default=12, minimum=1, maximum=200))
+                             t.number("sigma_target_mm", default=0.25, positive=True, maximum=100.0) * 1e-3,
+                             t.integer("max_views", default=12, minimum=1, maximum=200),
+                             t.number("corner_sigma_px", default=0.02, positive=True, maximum=5.0))
     t.done()
     return cfg
 

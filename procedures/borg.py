@@ -114,7 +114,8 @@ class BorgProcedure:
         if max_views is not None and not 1 <= max_views <= 200:
             raise UserError(f"--max-views must be in 1..200, got {max_views}")
         estimator_config = dict(estimator_config or {})
-        corner_sigma = float(estimator_config.get("corner_sigma_px", SlamConfig.corner_sigma_px))
+        estimator_config.setdefault("corner_sigma_px", ver.corner_sigma_px)
+        corner_sigma = float(estimator_config["corner_sigma_px"])
         self.precision = PrecisionTarget(sigma_m=sigma_target_mm * 1e-3 if sigma_target_mm is not None else ver.sigma_target_m,
                                          max_views=max_views if max_views is not None else ver.max_views,
                                          corner_sigma_px=corner_sigma)

@@ -32,7 +32,9 @@ class Measurement:
         K = calibration.K if calibration is not None else intrinsics.K
         self.detector = TagDetector(K, intrinsics.dist, {t: s.size_m for t, s in model.tags.items()})
         self.slam = SfGraphSlam(model, SlamConfig(semantic=self.config.get("semantic", True),
-                                                  observation=self.config.get("observation", "corners")),
+                                                  observation=self.config.get("observation", "corners"),
+                                                  corner_sigma_px=float(self.config.get("corner_sigma_px",
+                                                                                        SlamConfig.corner_sigma_px))),
                                 rig=rig, calibration=calibration, camera=(K, np.asarray(intrinsics.dist, float)))
         self.detector_camera = (np.asarray(K, float), np.asarray(intrinsics.dist, float))
         self.tolerances = Tolerances()

@@ -82,9 +82,9 @@ class CameraModel:
 class PrecisionTarget:
     """What the accuracy pass aims at and what it assumes."""
 
-    sigma_m: float = 0.0005               # the new module's position 1-sigma to reach
+    sigma_m: float = 0.00025              # the new module's position 1-sigma to reach
     max_views: int = 12                   # views per step, coverage views included
-    corner_sigma_px: float = 0.08         # the graph's corner noise (SlamConfig.corner_sigma_px)
+    corner_sigma_px: float = 0.02         # the graph's corner noise (SlamConfig.corner_sigma_px)
     # the camera pose as the graph knows it relative to the structure, per view (treated as
     # independent between views: the prediction is of the views' own contribution)
     camera_sigma_m: float = 0.0001

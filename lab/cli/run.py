@@ -38,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "closeout_square or all; repeatable; default: the rig's [verification] table, else 5 mm, 1 deg)")
     b.add_argument("--sigma-target-mm", type=float, default=None, metavar="MM",
                    help="plan each step's views until the new module's predicted position 1-sigma is this small "
-                        "(default: the rig's [verification] sigma_target_mm, else 0.5)")
+                        "(default: the rig's [verification] sigma_target_mm, else 0.25)")
     b.add_argument("--max-views", type=int, default=None, metavar="N",
                    help="view budget per step, extra views for an uncertain verdict included (default: the rig's "
                         "[verification] max_views, else 12)")
