@@ -193,6 +193,23 @@ def test_ctrl_c_on_worker_processes_keeps_finished_trials(tmp_path):
     assert not journal.exists()
 
 
+def test_mle_study_identical_in_process_on_workers_and_on_dask():
+    """The issue's test: a small study under every executor, the same figures apart from timings."""
+    distributed = pytest.importorskip("distributed", reason="Dask is the `distributed` extra")
+    from estimation import bench_mle
+    from lab.executor import DaskCluster
+
+    def run(executor) -> dict:
+        with Study(executor) as study:
+            return strip_timings(bench_mle.study_tetrahelix20(trials=8, seed=3, study=study))
+
+    here = run(InProcess())
+    assert differences(here, run(LocalProcesses(2))) == []
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        assert differences(here, run(DaskCluster(cluster.scheduler_address))) == []
+    assert here["ekf"]["trials"] == 8 and here["ekf"]["trace_total_m2"] > 0
+
+
 def test_strip_timings_and_differences():
     a = {"seconds": 1.0, "x": {"wall_s": 2, "update_ms_median": 3.0, "trace_m2": 1.5, "sigma_px_0.3": [1, 2]},
          "executor": "2 local processes", "find_locally_optimal_seconds_45": 9}
