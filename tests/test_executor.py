@@ -256,3 +256,21 @@ def test_bench_flags_are_checked_in_one_line(argv, message):
                        env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=60)
     assert r.returncode == 2
     assert len(r.stderr.strip().splitlines()) == 1 and message in r.stderr, r.stderr
+
+
+def test_calibration_runs_side_by_side_give_the_figures_of_runs_one_after_another(tmp_path):
+    """Two `lab run borg` at once on one machine: each simulated bench on its own free ports, the
+    same verdicts and errors as the same seeds run one after another."""
+    out = {}
+    for workers in (1, 2):
+        d = tmp_path / f"w{workers}"
+        r = subprocess.run([sys.executable, "-m", "lab", "bench", "calibration", "--seeds", "2", "--modules", "1",
+                            "--scales", "0", "--modes", "uncalibrated", "--workers", str(workers), "--json",
+                            "--out", str(d)], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                           timeout=300)
+        assert r.returncode == 0, r.stderr
+        out[workers] = json.loads((d / "calibration.json").read_text())
+        assert not (d / "trials.jsonl").exists()
+    assert out[2]["executor"] == "2 local processes" and out[2]["runs"] == 2
+    assert [t["seed"] for t in out[2]["trials"]] == [0, 1]
+    assert differences(strip_timings(out[1], frozenset({"command"})), strip_timings(out[2], frozenset({"command"}))) == []

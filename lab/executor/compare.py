@@ -4,7 +4,8 @@
 
 prints `identical apart from timings` (exit 0) or the paths that differ (exit 1).  A timing is a
 key one of whose underscore-separated words is seconds, s, ms or wall (`seconds`, `wall_s`,
-`update_ms_median`, `find_locally_optimal_seconds_45`), plus `executor` (how the trials ran)."""
+`update_ms_median`, `find_locally_optimal_seconds_45`), plus `executor` (how the trials ran).
+`--ignore KEY` leaves out more keys, e.g. a `command` that names two different --out directories."""
 
 from __future__ import annotations
 
@@ -20,12 +21,12 @@ def is_timing(key: str) -> bool:
     return key in IGNORED_KEYS or bool(TIMING_WORDS & set(key.split("_")))
 
 
-def strip_timings(value: Any) -> Any:
-    """The value without its timing keys, at any depth."""
+def strip_timings(value: Any, ignore: frozenset[str] = frozenset()) -> Any:
+    """The value without its timing keys (and `ignore`), at any depth."""
     if isinstance(value, dict):
-        return {k: strip_timings(v) for k, v in value.items() if not is_timing(str(k))}
+        return {k: strip_timings(v, ignore) for k, v in value.items() if not is_timing(str(k)) and k not in ignore}
     if isinstance(value, list):
-        return [strip_timings(v) for v in value]
+        return [strip_timings(v, ignore) for v in value]
     return value
 
 
@@ -55,22 +56,26 @@ def differences(a: Any, b: Any, path: str = "$", limit: int = 20) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    if len(args) != 2:
-        print("usage: python -m lab.executor.compare A.json B.json", file=sys.stderr)
-        return 2
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m lab.executor.compare",
+                                     description="two studies' JSON, identical apart from timings?")
+    parser.add_argument("first")
+    parser.add_argument("second")
+    parser.add_argument("--ignore", action="append", default=[], metavar="KEY", help="leave this key out too")
+    args = parser.parse_args(argv)
     try:
-        a, b = (strip_timings(json.loads(open(p).read())) for p in args)
+        a, b = (strip_timings(json.loads(open(p).read()), frozenset(args.ignore)) for p in (args.first, args.second))
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     diff = differences(a, b)
     if diff:
-        print(f"{args[0]} and {args[1]} differ apart from timings:")
+        print(f"{args.first} and {args.second} differ apart from timings:")
         for line in diff:
             print(f"  {line}")
         return 1
-    print(f"{args[0]} and {args[1]}: identical apart from timings")
+    print(f"{args.first} and {args.second}: identical apart from timings")
     return 0
 
 
