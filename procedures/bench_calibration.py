@@ -268,9 +268,8 @@ def run(args: argparse.Namespace) -> int:
             (out / "calibration.json").write_text(json.dumps(result(study.describe()), indent=1))
             if not args.json:
                 pe = max(r["position_errors_m"], default=float("nan")) * 1e3
-                print(f"  {r['mode']:<15} x{r['scale']:g} seed {r['seed']}: {r['false_flags']} false flags of "
-                      f"{r['good']}, faults {r['faults_caught']}/{r['faults']}, max position error {pe:.2f} mm",
-                      flush=True)
+                study.say(f"  {r['mode']:<15} x{r['scale']:g} seed {r['seed']}: {r['false_flags']} false flags of "
+                          f"{r['good']}, faults {r['faults_caught']}/{r['faults']}, max position error {pe:.2f} mm")
 
         study.map(calibration_trial, runs, on_result=done)
         res = result(study.describe())

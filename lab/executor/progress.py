@@ -15,29 +15,46 @@ from typing import Any
 class Progress:
     def __init__(self, label: str, enabled: bool | None = None) -> None:
         self.enabled = _isatty(sys.stderr) if enabled is None else enabled
+        self.label = label
         self._lock = threading.Lock()
         self._bar: Any = None
         self.total = 0
         self.done = 0
-        if self.enabled:
-            from tqdm import tqdm
-
-            self._bar = tqdm(total=0, desc=label, unit="trial", file=sys.stderr, leave=False, dynamic_ncols=True)
 
     def add(self, total: int, done: int = 0) -> None:
         """`total` more trials, `done` of them already finished (restored from a journal)."""
         with self._lock:
             self.total += total
             self.done += done
-            if self._bar is not None:
+            if not self.enabled:
+                return
+            if self._bar is None:
+                # made at the first trials: tqdm drawn with a total of 0 does not redraw when it grows
+                from tqdm import tqdm
+
+                self._bar = tqdm(total=self.total, initial=self.done, desc=self.label, unit="trial", file=sys.stderr,
+                                 leave=False, dynamic_ncols=True)
+            else:
                 self._bar.total = self.total
                 self._bar.update(done)
+                self._bar.refresh()
 
     def update(self, n: int) -> None:
         with self._lock:
             self.done += n
             if self._bar is not None:
                 self._bar.update(n)
+
+    def write(self, text: str) -> None:
+        """A line on stdout for the user, above the bar when there is one (so the bar does not tear it)."""
+        with self._lock:
+            if self._bar is not None:
+                from tqdm import tqdm
+
+                tqdm.write(text, file=sys.stdout)
+                sys.stdout.flush()
+            else:
+                print(text, flush=True)
 
     def close(self) -> None:
         with self._lock:

@@ -53,6 +53,13 @@ class Study:
     def describe(self) -> str:
         return self.executor.describe()
 
+    def say(self, text: str) -> None:
+        """A line for the user on stdout (above the progress bar, if one is drawn)."""
+        if self.progress is not None:
+            self.progress.write(text)
+        else:
+            print(text, flush=True)
+
     def finish(self) -> None:
         """The study's output is written: drop the journal (a rerun measures afresh)."""
         if self.journal is not None:
