@@ -13,6 +13,11 @@
 
 Writes mle.json, mle.md and PNG plots to --out (default bench_out/mle) and prints the Markdown
 (or the JSON with --json).  Top-level imports stay light: the CLI imports this module for --help.
+
+Trials run through `lab.executor` (--workers N local processes, default all cores, or --scheduler
+tcp://HOST:PORT for Dask), the four studies at once; the figures for a seed are the same whichever
+runs them.  An interrupted study keeps its finished trials in --out/trials.jsonl and the same
+command resumes from them.
 """
 
 from __future__ import annotations
@@ -20,13 +25,18 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import functools
 import os
 import time
+from dataclasses import dataclass
+from typing import Any
 
 from estimation.bench_common import save_figure
+from lab.executor import Study, Trial, add_executor_arguments, make_trials, open_study, trial_seed
 
 SIGMA_L_PAPER = math.sqrt(3.57e-7)
 SIGMA_M_PAPER = math.sqrt(6.25e-8)
+STUDIES = ("tetrahelix20", "telescope84", "sequencing45", "enumerate10")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,8 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the JSON instead of the Markdown table")
     parser.add_argument("--out", default=os.path.join("bench_out", "mle"), help="output directory (default bench_out/mle)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--only", choices=["tetrahelix20", "telescope84", "sequencing45", "enumerate10"], action="append",
+    parser.add_argument("--only", choices=list(STUDIES), action="append",
                         help="run only this study (repeatable)")
+    add_executor_arguments(parser)
 
 
 def _stats(values) -> dict:
@@ -58,27 +69,147 @@ def _mc_summary(mc, k: int) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------
+# Trials.  Module-level functions of a `Trial` (workers import them by name), returning JSON.
+# Every Monte Carlo trial draws from its own seed (`trial_seed(seed, stream, index)`) instead of
+# one generator running through all trials as `truss_simulation.monte_carlo` does, so that the
+# figures are the same whichever worker runs which trial.  Estimators compared on the same
+# assemblies share a stream: trial i of open loop, EKF and MLE simulates with the same seed.
 
 
-def study_tetrahelix20(trials: int, seed: int) -> dict:
-    pass
+@dataclass(frozen=True)
+class AssemblySpec:
+    """One simulated assembly: the truss by name (each worker builds it once), its plan, the estimator."""
 
-    from estimation.truss_covariance import node_traces
-    from estimation.truss_geometry import Plan, orient_base
-    from estimation.truss_simulation import monte_carlo
+    truss: str
+    plan: Any                                  # estimation.truss_geometry.Plan (frozen, picklable)
+    kind: str                                  # open_loop, ekf, mle, mle_camera
+    sigma_L: float
+    sigma_M: float
+    options: tuple[tuple[str, Any], ...] = ()  # estimator keywords, e.g. (("sigma_px", 0.3),)
+
+
+@functools.lru_cache(maxsize=8)
+def _truss(name: str):
     from lab.structures.trusses import build_truss
 
-    m = build_truss("tetrahelix:20")
+    return build_truss(name)
+
+
+@functools.lru_cache(maxsize=8)
+def _planner(name: str):
+    # cached per process: its caches hold derivatives of the design, the same whoever asks first
+    from estimation.sequencing import Planner
+
+    return Planner(_truss(name))
+
+
+def assembly_trial(trial: Trial) -> dict:
+    """`simulate_assembly` with the trial's seed: errors in plan order, or failed (struts never met)."""
+    import numpy as np
+
+    from estimation.truss_geometry import DegenerateBaseError
+    from estimation.truss_simulation import simulate_assembly
+
+    s: AssemblySpec = trial.spec
+    t0 = time.perf_counter()
+    try:
+        run = simulate_assembly(_truss(s.truss), s.plan, s.kind, s.sigma_L, s.sigma_M,
+                                np.random.default_rng(trial.seed), **dict(s.options))
+    except DegenerateBaseError:
+        return {"failed": True, "seconds": time.perf_counter() - t0}
+    order = s.plan.order
+    return {"failed": False, "redraws": run.redraws, "errors_m": (run.truth - run.nominal)[order].tolist(),
+            "estimate_sq_errors_m2": run.estimate_sq_errors[order].tolist(), "update_seconds": list(run.update_seconds),
+            "seconds": time.perf_counter() - t0}
+
+
+def plan_trial(trial: Trial) -> dict:
+    """FindLocallyOptimalSequence on a truss (spec: its name) from the study's seed, timed on a
+    fresh planner (cold caches, as a user's first call)."""
+    import numpy as np
+
+    from estimation.sequencing import Planner
+
+    t0 = time.perf_counter()
+    r = Planner(_truss(trial.spec)).locally_optimal(np.random.default_rng(trial.seed))
+    return {"plan": r.plan.to_json(), "trace_unit": r.trace_unit, "history_unit": r.history,
+            "seconds": time.perf_counter() - t0}
+
+
+def sequencing_trial(trial: Trial) -> dict:
+    """One run of the sequencing study from a starting triangle (spec: (truss, triangle)): a random
+    sequence, greedy assembly, local search from the greedy plan (traces per unit sigma_L^2)."""
+    import numpy as np
+
+    from estimation.sequencing import random_sequence
+
+    name, tri = trial.spec
+    planner = _planner(name)
+    p = random_sequence(planner.model, tri, "any", np.random.default_rng(trial.seed), planner.geometry)
+    out: dict = {"random_unit": planner.trace_unit(p) if p is not None else math.inf}
+    g = planner.greedy(tri)
+    if g is not None:
+        r = planner.local_search(g.plan)
+        out.update(greedy_unit=g.trace_unit, local_unit=r.trace_unit, history_unit=r.history,
+                   final_triangle=list(r.plan.triangle))
+    return out
+
+
+def _plan_from_json(doc: dict):
+    from estimation.truss_geometry import Plan, Step
+
+    return Plan(tuple(Step(s["node"], tuple(s["base"])) for s in doc["steps"]))
+
+
+def _monte_carlo(study: Study, seed: int, stream: str, runs: dict[str, AssemblySpec],
+                 trials: int) -> tuple[dict[str, Any], dict[str, float]]:
+    """{label: MonteCarlo} of `trials` assemblies per spec, and {label: the trials' summed seconds};
+    all in one map (no worker idles between estimators); trial i of every label draws from seed
+    `trial_seed(seed, stream, i)`."""
+    import numpy as np
+
+    from estimation.truss_simulation import MonteCarlo
+
+    seeds = [trial_seed(seed, stream, i) for i in range(trials)]
+    batch = [Trial(f"{stream}/{label}/{i}", seeds[i], spec) for label, spec in runs.items() for i in range(trials)]
+    results = study.map(assembly_trial, batch, batch_size="auto")
+    out, seconds = {}, {}
+    for j, (label, spec) in enumerate(runs.items()):
+        rs = results[j * trials:(j + 1) * trials]
+        ok = [r for r in rs if not r["failed"]]
+        if not ok:
+            raise RuntimeError(f"every one of {trials} {spec.kind} trials failed to close")
+        e = np.asarray([r["errors_m"] for r in ok])
+        mc = MonteCarlo(spec.kind, trials, len(rs) - len(ok), sum(r["redraws"] for r in ok),
+                        np.mean(np.sum(e ** 2, axis=2), axis=0), np.einsum("tni,tnj->nij", e, e) / len(e),
+                        np.mean([r["estimate_sq_errors_m2"] for r in ok], axis=0),
+                        [t for r in ok for t in r["update_seconds"]])
+        out[label] = mc
+        seconds[label] = sum(r["seconds"] for r in rs)   # the trials' own time, summed: one core's worth
+    return out, seconds
+
+
+# ------------------------------------------------------------------------------------------------
+# Studies.  Each takes the `Study` its trials run in (default: this process, no journal).
+
+
+def study_tetrahelix20(trials: int, seed: int, study: Study | None = None) -> dict:
+    from estimation.truss_covariance import node_traces
+    from estimation.truss_geometry import Plan, orient_base
+
+    study = study or Study()
+    m = _truss("tetrahelix:20")
     plan = Plan.from_triangle((0, 1, 2), [(k, orient_base(m.nodes, k, (k - 3, k - 2, k - 1))) for k in range(3, 20)])
     sL, sM = 0.1, 0.01
     analytic = node_traces(m.nodes, plan, sL)
     out: dict = {"truss": m.name, "sigma_L_m": sL, "sigma_M_m": sM, "trials": trials,
                  "paper_total_m2": {"open_loop": 28.76, "mle": 1.39, "ekf": 2.41}}
-    for kind in ("open_loop", "ekf", "mle"):
-        t0 = time.perf_counter()
-        mc = monte_carlo(m, plan, kind, sL, sM, trials, seed=seed)
-        out[kind] = _mc_summary(mc, 10)
-        out[kind]["seconds"] = time.perf_counter() - t0
+    kinds = ("open_loop", "ekf", "mle")
+    mcs, trial_secs = _monte_carlo(study, seed, "tetrahelix20", {k: AssemblySpec(m.name, plan, k, sL, sM) for k in kinds},
+                             trials)
+    for kind in kinds:
+        out[kind] = _mc_summary(mcs[kind], 10)
+        out[kind]["trial_seconds"] = trial_secs[kind]
     out["open_loop"]["analytic_trace_node10_m2"] = float(analytic[:10].sum())
     out["open_loop"]["analytic_trace_total_m2"] = float(analytic.sum())
     out["open_loop"]["analytic_node_mse_m2"] = [float(v) for v in analytic]
@@ -92,38 +223,36 @@ def study_tetrahelix20(trials: int, seed: int) -> dict:
     return out
 
 
-def study_telescope84(trials: int, fusion_trials: int, seed: int) -> dict:
+def study_telescope84(trials: int, fusion_trials: int, seed: int, study: Study | None = None) -> dict:
     import numpy as np
 
-    from estimation.sequencing import Planner
     from estimation.truss_covariance import LocalSensitivities, node_traces
-    from estimation.truss_simulation import monte_carlo
-    from lab.structures.trusses import build_truss
 
-    m = build_truss("telescope:84")
-    planner = Planner(m)
-    t0 = time.perf_counter()
-    res = planner.locally_optimal(np.random.default_rng(seed))
-    seq_s = time.perf_counter() - t0
-    plan = res.plan
+    study = study or Study()
+    m = _truss("telescope:84")
+    # the plan is a trial too: a worker plans while the others run another study's trials
+    res = study.map(plan_trial, [Trial("telescope84/plan", seed, m.name)])[0]
+    plan = _plan_from_json(res["plan"])
     sL, sM = SIGMA_L_PAPER, SIGMA_M_PAPER
-    analytic = node_traces(m.nodes, plan, sL, planner.sens)[plan.order]
+    sens = LocalSensitivities(m.nodes)
+    analytic = node_traces(m.nodes, plan, sL, sens)[plan.order]
     # Perfect-knowledge floor: even with an exact estimate, each node keeps the error of its own
     # three struts relative to its base (sigma_L^2 ||C_f||^2).
-    sens = LocalSensitivities(m.nodes)
     floor = sum(float(np.sum(sens.step(plan, k)[1] ** 2)) for k in range(len(plan.steps))) * sL ** 2
     out: dict = {"truss": m.name, "sigma_L2_m2": sL ** 2, "sigma_M2_m2": sM ** 2, "trials": trials,
-                 "sequence": {"trace_m2": res.trace(sL), "layers": len(plan.layers), "seconds": seq_s,
-                              "descent_steps": len(res.history) - 2},
+                 "sequence": {"trace_m2": res["trace_unit"] * sL ** 2, "layers": len(plan.layers),
+                              "seconds": res["seconds"], "descent_steps": len(res["history_unit"]) - 2},
                  "paper_m2": {"open_loop": 1.55e-3, "mle": 2.28e-4, "ekf": 2.29e-4},
                  "perfect_estimate_floor_m2": floor}
     n = m.n_nodes
-    for kind in ("open_loop", "ekf", "mle"):
-        t0 = time.perf_counter()
-        mc = monte_carlo(m, plan, kind, sL, sM, trials, seed=seed)
+    kinds = ("open_loop", "ekf", "mle")
+    mcs, trial_secs = _monte_carlo(study, seed, "telescope84", {k: AssemblySpec(m.name, plan, k, sL, sM) for k in kinds},
+                             trials)
+    for kind in kinds:
+        mc = mcs[kind]
         s = out[kind] = _mc_summary(mc, 10)
         s["trace_m2"] = mc.trace
-        s["seconds"] = time.perf_counter() - t0
+        s["trial_seconds"] = trial_secs[kind]
         if kind != "open_loop":
             secs = np.asarray(mc.update_seconds)
             last = secs[n - 1::n] * 1e3  # the update that adds node 84 (84 nodes in the graph)
@@ -135,10 +264,14 @@ def study_telescope84(trials: int, fusion_trials: int, seed: int) -> dict:
     out["open_loop"]["analytic_node_mse_m2"] = [float(v) for v in analytic]
     fusion = {"cameras": 4, "camera": "4000x3000 px, f = 3000 px, ring above the truss; pose prior 0.01 rad, 5 cm",
               "trials": fusion_trials}
-    base = monte_carlo(m, plan, "mle", sL, sM, fusion_trials, seed=seed + 1)
-    fusion["mle_only"] = {"trace_m2": base.trace, "estimate_error_total_m2": float(base.estimate_mse.sum())}
+    runs = {"mle_only": AssemblySpec(m.name, plan, "mle", sL, sM)}
     for px in (1.0, 0.3, 0.1):
-        mc = monte_carlo(m, plan, "mle_camera", sL, sM, fusion_trials, seed=seed + 1, sigma_px=px)
+        runs[f"sigma_px_{px:g}"] = AssemblySpec(m.name, plan, "mle_camera", sL, sM, (("sigma_px", px),))
+    fmc, _ = _monte_carlo(study, seed, "telescope84/fusion", runs, fusion_trials)
+    fusion["mle_only"] = {"trace_m2": fmc["mle_only"].trace,
+                          "estimate_error_total_m2": float(fmc["mle_only"].estimate_mse.sum())}
+    for px in (1.0, 0.3, 0.1):
+        mc = fmc[f"sigma_px_{px:g}"]
         fusion[f"sigma_px_{px:g}"] = {"trace_m2": mc.trace, "estimate_error_total_m2": float(mc.estimate_mse.sum()),
                                       "update_ms_median": float(np.median(mc.update_seconds) * 1e3),
                                       "node_mse_m2": [float(v) for v in mc.node_mse]}
@@ -148,15 +281,15 @@ def study_telescope84(trials: int, fusion_trials: int, seed: int) -> dict:
     return out
 
 
-def study_sequencing45(runs: int, seed: int) -> dict:
+def study_sequencing45(runs: int, seed: int, study: Study | None = None) -> dict:
     import numpy as np
 
-    from estimation.sequencing import Planner, all_central_triangles, ordered_triangles, random_sequence, three_cliques
-    from lab.structures.trusses import build_truss
+    from estimation.sequencing import all_central_triangles, ordered_triangles, three_cliques
 
-    m = build_truss("telescope:45")
-    planner = Planner(m)
-    rng = np.random.default_rng(seed)
+    study = study or Study()
+    m = _truss("telescope:45")
+    planner = _planner(m.name)
+    rng = np.random.default_rng(seed)   # central triangles and the starting triangles drawn: here
     s2 = SIGMA_L_PAPER ** 2
     all_tris = [o for t in three_cliques(m) for o in ordered_triangles(t)]
     t0 = time.perf_counter()
@@ -168,52 +301,53 @@ def study_sequencing45(runs: int, seed: int) -> dict:
                  "paper": {"starting_triangles": 1260, "central_triangles": 72,
                            "greedy_any_m2": [7.92e-4, 2.06e-4], "greedy_central_m2": [5.08e-4, 2.88e-4],
                            "local_any_m2": [6.18e-4, 1.15e-4], "local_central_m2": [4.94e-4, 2.70e-5]}}
-    for label, pool in (("any", all_tris), ("central", central)):
-        tris = [pool[int(i)] for i in rng.choice(len(pool), size=runs, replace=len(pool) < runs)]
-        rnd, greedy, local, steps, moved_central, histories = [], [], [], [], 0, []
-        for tri in tris:
-            p = random_sequence(m, tri, "any", rng, planner.geometry)
-            rnd.append(planner.trace_unit(p) * s2 if p is not None else math.inf)
-            g = planner.greedy(tri)
-            if g is None:
-                continue
-            greedy.append(g.trace_unit * s2)
-            r = planner.local_search(g.plan)
-            local.append(r.trace_unit * s2)
-            steps.append(len(r.history) - 1)
-            histories.append([h * s2 for h in r.history])
-            moved_central += int(r.plan.triangle in central_set and tri not in central_set)
-        out[f"random_{label}"] = _stats(rnd)
+    pools = {"any": all_tris, "central": central}
+    starts = {label: [pool[int(i)] for i in rng.choice(len(pool), size=runs, replace=len(pool) < runs)]
+              for label, pool in pools.items()}
+    # the two FindLocallyOptimalSequence timings first: the longest trials, started while the runs queue
+    trials = [Trial("sequencing45/flos84", seed, "telescope:84"), Trial("sequencing45/flos45", seed, m.name)]
+    for label, tris in starts.items():
+        trials += make_trials(seed, f"sequencing45/{label}", [(m.name, tri) for tri in tris])
+    results = study.map(_sequencing_dispatch, trials)
+    r84, r45, done = results[0], results[1], results[2:]
+    for j, label in enumerate(pools):
+        rs = done[j * runs:(j + 1) * runs]
+        ok = [r for r in rs if "greedy_unit" in r]
+        greedy = np.asarray([r["greedy_unit"] * s2 for r in ok])
+        local = np.asarray([r["local_unit"] * s2 for r in ok])
+        out[f"random_{label}"] = _stats([r["random_unit"] * s2 for r in rs])
         out[f"greedy_{label}"] = _stats(greedy)
         out[f"local_{label}"] = _stats(local)
+        steps = [len(r["history_unit"]) - 1 for r in ok]
         out[f"local_{label}"]["descent_steps_mean"] = float(np.mean(steps)) if steps else math.nan
-        out[f"local_{label}"]["improvement_factor_mean"] = float(np.mean(np.asarray(greedy) / np.asarray(local)))
-        out[f"local_{label}"]["moved_to_central_triangle"] = moved_central
-        out[f"histories_{label}"] = histories
-    t0 = time.perf_counter()
-    r45 = Planner(m).locally_optimal(np.random.default_rng(seed))
-    out["find_locally_optimal_seconds_45"] = time.perf_counter() - t0
-    out["find_locally_optimal_trace_45_m2"] = r45.trace(SIGMA_L_PAPER)
+        out[f"local_{label}"]["improvement_factor_mean"] = float(np.mean(greedy / local))
+        out[f"local_{label}"]["moved_to_central_triangle"] = sum(
+            1 for tri, r in zip(starts[label], rs)
+            if "greedy_unit" in r and tuple(r["final_triangle"]) in central_set and tri not in central_set)
+        out[f"histories_{label}"] = [[h * s2 for h in r["history_unit"]] for r in ok]
+    out["find_locally_optimal_seconds_45"] = r45["seconds"]
+    out["find_locally_optimal_trace_45_m2"] = r45["trace_unit"] * s2
     out["all_central_triangles_seconds_45"] = central_s
-    m84 = build_truss("telescope:84")
-    t0 = time.perf_counter()
-    r84 = Planner(m84).locally_optimal(np.random.default_rng(seed))
-    out["find_locally_optimal_seconds_84"] = time.perf_counter() - t0
-    out["find_locally_optimal_trace_84_m2"] = r84.trace(SIGMA_L_PAPER)
+    out["find_locally_optimal_seconds_84"] = r84["seconds"]
+    out["find_locally_optimal_trace_84_m2"] = r84["trace_unit"] * s2
     out["checks"] = {"flos_45_le_30s": out["find_locally_optimal_seconds_45"] <= 30.0,
                      "flos_84_le_300s": out["find_locally_optimal_seconds_84"] <= 300.0}
     return out
 
 
-def study_enumerate10(trials: int, seed: int) -> dict:
+def _sequencing_dispatch(trial: Trial) -> dict:
+    # one map for the study's two kinds of trial: a truss name is a FindLocallyOptimalSequence timing
+    return plan_trial(trial) if isinstance(trial.spec, str) else sequencing_trial(trial)
+
+
+def study_enumerate10(trials: int, seed: int, study: Study | None = None) -> dict:
     import numpy as np
 
-    from estimation.sequencing import Planner, enumerate_plans
-    from estimation.truss_simulation import monte_carlo
-    from lab.structures.trusses import build_truss
+    from estimation.sequencing import enumerate_plans
 
-    m = build_truss("telescope:10")
-    planner = Planner(m)
+    study = study or Study()
+    m = _truss("telescope:10")
+    planner = _planner(m.name)
     t0 = time.perf_counter()
     plans = list(enumerate_plans(m, planner=planner))
     secs = time.perf_counter() - t0
@@ -225,11 +359,13 @@ def study_enumerate10(trials: int, seed: int) -> dict:
     out: dict = {"truss": m.name, "sequences": len(plans), "enumeration_seconds": secs, "trials": trials,
                  "paper": {"sequences": 12708, "optimal_open_loop_m2": 2.84e-5, "median_open_loop_m2": 5.98e-5,
                            "optimal_mle_m2": 1.56e-5, "median_mle_m2": 1.86e-5}}
+    runs = {f"{label}/{kind}": AssemblySpec(m.name, plan, kind, sL, sM)
+            for label, plan in (("optimal", best), ("median", median)) for kind in ("open_loop", "mle")}
+    mcs, _ = _monte_carlo(study, seed, "enumerate10", runs, trials)
     for label, plan in (("optimal", best), ("median", median)):
-        ol = monte_carlo(m, plan, "open_loop", sL, sM, trials, seed=seed)
-        mle = monte_carlo(m, plan, "mle", sL, sM, trials, seed=seed)
-        out[label] = {"open_loop_trace_m2": planner.trace_unit(plan) * sL ** 2, "open_loop_mc_trace_m2": ol.trace,
-                      "mle_trace_m2": mle.trace, "plan": plan.to_json()}
+        out[label] = {"open_loop_trace_m2": planner.trace_unit(plan) * sL ** 2,
+                      "open_loop_mc_trace_m2": mcs[f"{label}/open_loop"].trace,
+                      "mle_trace_m2": mcs[f"{label}/mle"].trace, "plan": plan.to_json()}
     out["median_over_optimal_open_loop"] = out["median"]["open_loop_trace_m2"] / out["optimal"]["open_loop_trace_m2"]
     out["median_over_optimal_mle"] = out["median"]["mle_trace_m2"] / out["optimal"]["mle_trace_m2"]
     return out
@@ -384,25 +520,34 @@ def markdown(studies: dict, command: str) -> str:
 def run(args: argparse.Namespace) -> int:
     quick = bool(getattr(args, "quick", False))
     seed = int(getattr(args, "seed", 0))
-    only = set(getattr(args, "only", None) or ["tetrahelix20", "telescope84", "sequencing45", "enumerate10"])
+    only = set(getattr(args, "only", None) or STUDIES)
     out_dir = getattr(args, "out", os.path.join("bench_out", "mle"))
+    if seed < 0:
+        from lab.errors import UserError
+
+        raise UserError(f"--seed must be 0 or more, got {seed}")
     os.makedirs(out_dir, exist_ok=True)
     t_all = time.perf_counter()
-    studies: dict = {}
-    if "tetrahelix20" in only:
-        studies["tetrahelix20"] = study_tetrahelix20(200 if quick else 1000, seed)
-    if "telescope84" in only:
-        studies["telescope84"] = study_telescope84(20 if quick else 100, 10 if quick else 50, seed)
-    if "sequencing45" in only:
-        studies["sequencing45"] = study_sequencing45(5 if quick else 50, seed)
-    if "enumerate10" in only:
-        studies["enumerate10"] = study_enumerate10(200 if quick else 1000, seed)
-    command = "lab bench mle" + (" --quick" if quick else "") + (f" --seed {seed}" if seed else "")
-    result = {"studies": studies, "quick": quick, "seed": seed, "seconds": time.perf_counter() - t_all,
-              "command": command}
-    with open(os.path.join(out_dir, "mle.json"), "w") as fh:
-        json.dump(result, fh, indent=1, default=float)
-    md = markdown(studies, command) + f"\nTotal {result['seconds']:.0f} s.\n"
+    # the journal's study: what the figures depend on (not --workers / --scheduler)
+    fingerprint = {"bench": "mle", "quick": quick, "seed": seed, "only": sorted(only)}
+    with open_study(args, out_dir, fingerprint, "lab bench mle") as study:
+        parts = {
+            # the two with a long serial trial (a FindLocallyOptimalSequence on 84 nodes) first
+            "telescope84": lambda: study_telescope84(20 if quick else 100, 10 if quick else 50, seed, study),
+            "sequencing45": lambda: study_sequencing45(5 if quick else 50, seed, study),
+            "tetrahelix20": lambda: study_tetrahelix20(200 if quick else 1000, seed, study),
+            "enumerate10": lambda: study_enumerate10(200 if quick else 1000, seed, study),
+        }
+        done = study.concurrently({name: part for name, part in parts.items() if name in only})
+        studies: dict = {name: done[name] for name in STUDIES if name in done}
+        command = "lab bench mle" + (" --quick" if quick else "") + (f" --seed {seed}" if seed else "") + \
+            "".join(f" --only {name}" for name in STUDIES if name in only and len(only) < len(STUDIES))
+        result = {"studies": studies, "quick": quick, "seed": seed, "seconds": time.perf_counter() - t_all,
+                  "command": command, "executor": study.describe()}
+        with open(os.path.join(out_dir, "mle.json"), "w") as fh:
+            json.dump(result, fh, indent=1, default=float)
+        study.finish()
+    md = markdown(studies, command) + f"\nTotal {result['seconds']:.0f} s ({result['executor']}).\n"
     with open(os.path.join(out_dir, "mle.md"), "w") as fh:
         fh.write(md)
     plots = _plots(studies, out_dir)

@@ -14,6 +14,11 @@ of structure faults.  Modes:
 Figures: false flags on good modules, faults caught, good-module position and rotation error
 against the simulated truth, the rig calibration's error against the truth and its NEES, the SLAM
 step time and the run's wall time.
+
+Trials run through `lab.executor`: --workers N runs N `lab run borg` at once (default: all cores;
+each simulated bench listens on its own free loopback ports), --scheduler tcp://HOST:PORT on a Dask
+cluster.  A trial's seed is the scenario's, so the figures do not depend on which ran it.  Finished
+trials are journaled in --out/trials.jsonl: the same command after an interruption resumes.
 """
 
 from __future__ import annotations
@@ -24,10 +29,13 @@ import math
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from lab.executor import Trial, add_executor_arguments, open_study, without_executor_args
 
 # Faults among the first 9 modules, so --quick sees them all: a partial deployment and a 15 mm
 # offset must be flagged, a displaced tag rejected (its module unverified), a 2 mm offset passed.
@@ -69,6 +77,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="bench_out/calibration", help="directory for the runs (default bench_out/calibration)")
     p.add_argument("--report", metavar="JSON", help="print the tables of an earlier (or interrupted) study's "
                                                    "calibration.json instead of running one")
+    add_executor_arguments(p)
 
 
 def _scenario(seed: int, scale: float) -> str:
@@ -99,6 +108,9 @@ def trial(out: Path, seed: int, scale: float, mode: str, modules: int, speedup: 
     if not (d / "summary.json").exists():
         raise RuntimeError(f"{' '.join(cmd)} failed: {r.stderr.strip()[-500:]}")
     s = json.loads((d / "summary.json").read_text())
+    if s["result"] == "aborted":
+        # a Ctrl-C at the terminal reaches the run too: an interrupted run is not a finished trial
+        raise RuntimeError(f"{' '.join(cmd)} was interrupted: {s.get('reason', '')}")
     mods = s["modules"]
     good = [m for m in mods if m["name"] not in EXPECT]
     res: dict[str, Any] = {
@@ -117,6 +129,22 @@ def trial(out: Path, seed: int, scale: float, mode: str, modules: int, speedup: 
         res["calibration_nees"] = survey.get("nees")
         res["calibration_problems"] = survey.get("problems")
     return res
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One `lab run borg` of the study; the trial's seed is the scenario's seed."""
+
+    out: str        # absolute: a Dask worker's working directory is its own
+    scale: float
+    mode: str
+    modules: int
+    speedup: float
+
+
+def calibration_trial(t: Trial) -> dict[str, Any]:
+    s: RunSpec = t.spec
+    return trial(Path(s.out), t.seed, s.scale, s.mode, s.modules, s.speedup)
 
 
 def _aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -216,26 +244,37 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    trials: list[dict[str, Any]] = []
-    command = "lab bench calibration " + " ".join(a for a in sys.argv[3:] if a != "--json")
+    finished: dict[str, dict[str, Any]] = {}
+    argv = without_executor_args([a for a in sys.argv[3:] if a != "--json"])
+    command = ("lab bench calibration " + " ".join(argv)).strip()
+    # seed by seed across every configuration: with fewer workers than trials, an interrupted study
+    # still covers every configuration
+    runs = [Trial(f"{mode}-x{scale:g}-seed{seed}", seed, RunSpec(str(out.resolve()), scale, mode, modules, args.speedup))
+            for seed in range(seeds) for scale in scales for mode in modes]
+    order = {t.key: i for i, t in enumerate(runs)}
 
-    def result() -> dict[str, Any]:
-        return {"command": command.strip(), "runs": len(trials), "wall_s": time.perf_counter() - t0, "seeds": seeds,
-                "modules": modules, "scales": scales, "rows": _aggregate(trials), "trials": trials}
+    def result(study_executor: str) -> dict[str, Any]:
+        trials = [finished[k] for k in sorted(finished, key=order.__getitem__)]
+        return {"command": command, "runs": len(trials), "wall_s": time.perf_counter() - t0, "seeds": seeds,
+                "modules": modules, "scales": scales, "rows": _aggregate(trials), "trials": trials,
+                "executor": study_executor}
 
-    # seed by seed across every configuration, written after each trial: an interrupted study
-    # keeps every finished trial and still covers every configuration
-    for seed in range(seeds):
-        for scale in scales:
-            for mode in modes:
-                trials.append(trial(out, seed, scale, mode, modules, args.speedup))
-                (out / "calibration.json").write_text(json.dumps(result(), indent=1))
-                if not args.json:
-                    t = trials[-1]
-                    pe = max(t["position_errors_m"], default=float("nan")) * 1e3
-                    print(f"  {mode:<15} x{scale:g} seed {seed}: {t['false_flags']} false flags of {t['good']}, "
-                          f"faults {t['faults_caught']}/{t['faults']}, max position error {pe:.2f} mm", flush=True)
-    res = result()
+    fingerprint = {"bench": "calibration", "seeds": seeds, "modules": modules, "scales": scales, "modes": modes,
+                   "speedup": args.speedup}
+    with open_study(args, out, fingerprint, "lab bench calibration") as study:
+        def done(t: Trial, r: dict[str, Any]) -> None:
+            # written after each trial: an interrupted study's calibration.json has every finished one
+            finished[t.key] = r
+            (out / "calibration.json").write_text(json.dumps(result(study.describe()), indent=1))
+            if not args.json:
+                pe = max(r["position_errors_m"], default=float("nan")) * 1e3
+                study.say(f"  {r['mode']:<15} x{r['scale']:g} seed {r['seed']}: {r['false_flags']} false flags of "
+                          f"{r['good']}, faults {r['faults_caught']}/{r['faults']}, max position error {pe:.2f} mm")
+
+        study.map(calibration_trial, runs, on_result=done)
+        res = result(study.describe())
+        (out / "calibration.json").write_text(json.dumps(res, indent=1))
+        study.finish()
     if args.json:
         print(json.dumps({k: v for k, v in res.items() if k != "trials"}, indent=1))
     else:
