@@ -115,12 +115,18 @@ def trial(out: Path, seed: int, scale: float, mode: str, modules: int, speedup: 
     good = [m for m in mods if m["name"] not in EXPECT]
     res: dict[str, Any] = {
         "seed": seed, "scale": scale, "mode": mode, "result": s["result"], "wall_s": wall,
-        "good": len(good), "false_flags": sum(m["verdict"] != "ok" for m in good),
-        "false_flagged": [m["name"] for m in good if m["verdict"] != "ok"],
+        "good": len(good), "false_flags": sum(m["verdict"] == "flagged" for m in good),
+        "false_flagged": [m["name"] for m in good if m["verdict"] == "flagged"],
+        # a good module the run could not decide (uncertain) or could not see (unverified)
+        "undecided": sum(m["verdict"] in ("uncertain", "unverified") for m in good),
         "faults_caught": sum(1 for m in mods if m["name"] in EXPECT and m["verdict"] == EXPECT[m["name"]]),
         "faults": sum(1 for m in mods if m["name"] in EXPECT),
         "position_errors_m": [m["position_error_m"] for m in good if m["position_error_m"] is not None],
         "rotation_errors_rad": [m["rotation_error_rad"] for m in good if m["rotation_error_rad"] is not None],
+        # the Cramér-Rao bound of each good module's views (expected RMS of its position error)
+        "bound_rms_m": [m["bound_position_rms_m"] for m in good if m.get("bound_position_rms_m") is not None],
+        "views": s.get("views"),
+        "corner_rms_px": s.get("corner_rms_px"),
         "slam_update_s_median": _median_metric(d / "run.mcap", "slam/update_s"),
     }
     survey = s.get("rig_survey")
@@ -165,6 +171,8 @@ def _aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
             "position_error_mm_max": float(pos.max() * 1e3) if pos.size else None,
             "rotation_error_deg_median": float(np.degrees(np.median(rot))) if rot.size else None,
             "rotation_error_deg_max": float(np.degrees(rot.max())) if rot.size else None,
+            "undecided": sum(t.get("undecided", 0) for t in ts),
+            "position_rmse_over_bound": _rmse_over_bound(ts),
             "slam_update_ms_median": float(np.median([t["slam_update_s_median"] for t in ts]) * 1e3),
             "wall_s_median": float(np.median([t["wall_s"] for t in ts])),
         }
@@ -184,6 +192,17 @@ def _aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
+def _rmse_over_bound(ts: list[dict[str, Any]]) -> float | None:
+    """Achieved position RMSE over the RMS of the bound, over the runs' good modules that have one."""
+    pos = np.concatenate([t["position_errors_m"] for t in ts if t.get("bound_rms_m")
+                          and len(t["bound_rms_m"]) == len(t["position_errors_m"])] or [np.array([])])
+    bound = np.concatenate([t["bound_rms_m"] for t in ts if t.get("bound_rms_m")
+                            and len(t["bound_rms_m"]) == len(t["position_errors_m"])] or [np.array([])])
+    if not pos.size or not bound.size:
+        return None
+    return float(np.sqrt(np.mean(pos ** 2)) / np.sqrt(np.mean(bound ** 2)))
+
+
 def report(path: str) -> int:
     """Print the table of a (possibly interrupted) study from its calibration.json."""
     res = json.loads(Path(path).read_text())
@@ -194,15 +213,18 @@ def report(path: str) -> int:
 
 def to_markdown(res: dict[str, Any]) -> str:
     lines = [f"`{res['command']}` ({res['runs']} runs, {res['wall_s']:.0f} s)", "",
-             "| mode | rig error | runs | false flags | faults caught | pos. error median / max (mm) | "
-             "rot. error median / max (deg) | SLAM step median (ms) | run wall median (s) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| mode | rig error | runs | false flags | uncertain or unverified | faults caught | "
+             "pos. error median / max (mm) | RMSE / bound | rot. error median / max (deg) | SLAM step median (ms) | "
+             "run wall median (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
         def f(v, spec=".2f"):
             return "—" if v is None else format(v, spec)
         lines.append(f"| {r['mode']} | {r['rig_error_scale']:g}x default | {r['runs']} | "
                      f"{r['false_flags']}/{r['good_modules']} ({100 * r['false_flag_rate']:.1f} %) | "
+                     f"{r.get('undecided', 0)} | "
                      f"{r['faults_caught']} | {f(r['position_error_mm_median'])} / {f(r['position_error_mm_max'])} | "
+                     f"{f(r.get('position_rmse_over_bound'))} | "
                      f"{f(r['rotation_error_deg_median'], '.3f')} / {f(r['rotation_error_deg_max'], '.3f')} | "
                      f"{r['slam_update_ms_median']:.1f} | {r['wall_s_median']:.0f} |")
     cal_rows = [r for r in res["rows"] if "camera_mount_mm_max" in r]

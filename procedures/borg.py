@@ -60,6 +60,7 @@ class ModuleResult:
     predicted_sigma_m: float | None = None    # what the plan expected of its views
     bound_position_m: float | None = None     # simulation: the Cramér-Rao bound of the same views
     bound_rotation_rad: float | None = None
+    bound_position_rms_m: float | None = None  # sqrt(trace): the expected RMS of the 3-D position error
 
     def to_json(self) -> dict[str, Any]:
         return {k: v for k, v in self.__dict__.items()}
@@ -385,7 +386,7 @@ class BorgProcedure:
             return
         m = self.model.module_by_name[name]
         ms = module_sigma(self.model.tags[tag].structure_T_tag.inverse().compose(m.structure_T_module), cov)
-        r.bound_position_m, r.bound_rotation_rad = ms.position_m, ms.rotation_rad
+        r.bound_position_m, r.bound_rotation_rad, r.bound_position_rms_m = ms.position_m, ms.rotation_rad, ms.position_rms_m
 
     def _take_truth(self, record: dict[str, Any]) -> None:
         from lab.geometry import Pose3
@@ -502,7 +503,8 @@ class BorgProcedure:
                 "sigma_position_m": r.sigma_position_m, "tolerance_m": tol.position_m,
                 "tolerance_rad": tol.rotation_rad, "tags_seen": r.tags_seen, "attempts": r.attempts,
                 "sigma_rotation_rad": r.sigma_rotation_rad, "views": r.views, "predicted_sigma_m": r.predicted_sigma_m,
-                "bound_position_m": r.bound_position_m, "bound_rotation_rad": r.bound_rotation_rad}
+                "bound_position_m": r.bound_position_m, "bound_rotation_rad": r.bound_rotation_rad,
+                "bound_position_rms_m": r.bound_position_rms_m}
 
     def _truth_errors(self, r: ModuleResult) -> None:
         est = self.measure.module_estimate(r.name)
