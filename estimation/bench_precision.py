@@ -222,25 +222,37 @@ def trial(kind: str, size: float, target: str, seed: int, setup: PrecisionSetup,
     return out
 
 
+def precision_trial(t) -> dict:
+    """One `lab.executor` trial: (kind, size, target, setup, modules) with the trial's own seed."""
+    kind, size, target, setup, modules = t.spec
+    return trial(kind, size, target, t.seed, setup, modules)
+
+
 def study(trials: int, seed: int, setup: PrecisionSetup | None = None, cases=CASES_DEFAULT, label: str = "default",
-          progress=None) -> dict:
-    """Flag / uncertain rates against deviation size, false flags, accuracy against the bound."""
-    setup = setup or PrecisionSetup()
+          runner=None) -> dict:
+    """Flag / uncertain rates against deviation size, false flags, accuracy against the bound.
+    `runner` (a `lab.executor.Study`) runs the trials; without one they run here, one by one."""
+    from lab.executor import InProcess, make_trials
     from lab.structures.borg import build_borg
 
+    setup = setup or PrecisionSetup()
     model = build_borg()
     names = [m.name for m in model.modules]
     modules = names[:max(names.index(t) for t in TARGETS) + 1]
     offsets, rotations = cases
+    case_list = [("offset", d) for d in offsets] + [("rotation", r) for r in rotations]
+    specs = [(kind, size, TARGETS[k % len(TARGETS)], setup, modules) for kind, size in case_list for k in range(trials)]
+    tr = make_trials(seed, f"precision/{label}", specs)
+    results = runner.map(precision_trial, tr) if runner is not None else InProcess().map(precision_trial, tr)
     rows = []
     good = {"n": 0, "flagged": 0, "uncertain": 0, "errors_m": [], "errors_rad": [], "bound_rms_m": [],
             "bound_rad": [], "views": []}
-    for ci, (kind, size) in enumerate([("offset", d) for d in offsets] + [("rotation", r) for r in rotations]):
+    for ci, (kind, size) in enumerate(case_list):
         counts = {"ok": 0, "flagged": 0, "uncertain": 0, "unverified": 0}
         views = []
         for k in range(trials):
             target = TARGETS[k % len(TARGETS)]
-            res = trial(kind, size, target, int(np.random.SeedSequence([seed, ci, k]).generate_state(1)[0]), setup, modules)
+            res = results[ci * trials + k]
             deviated = size > 0
             for name, r in res.items():
                 if name == target and deviated:
@@ -257,8 +269,6 @@ def study(trials: int, seed: int, setup: PrecisionSetup | None = None, cases=CAS
                 if r["bound_rms_m"] is not None:
                     good["bound_rms_m"].append(r["bound_rms_m"])
                     good["bound_rad"].append(r["bound_rad"])
-            if progress:
-                progress()
         if size > 0:
             rows.append({"kind": kind, "size": size, "trials": trials,
                          **{f"{v}_rate": c / trials for v, c in counts.items()},
@@ -337,7 +347,7 @@ def markdown(res: dict) -> list[str]:
                   f"{t['batch_ms']:.1f} |" for t in timing]
         lines.append("")
     for key, s in res.items():
-        if key == "timing":
+        if key in ("timing", "executor"):
             continue
         g = s["good"]
         lines += [f"### Precision, {s.get('observation', 'corners')} model, tolerance {s['tolerance_mm']:g} mm / "

@@ -61,6 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="precision: plan each step's views to this module 1-sigma (default 0.25, as a run)")
     parser.add_argument("--max-views", type=int, default=None, metavar="N",
                         help="precision: view budget per step (default 12, as a run)")
+    from lab.executor import add_executor_arguments
+
+    add_executor_arguments(parser)   # the precision study's trials (the others run here)
     parser.add_argument("--literal-powell", type=int, default=None, metavar="N",
                         help="borg_face1: time Powell on the loop form of J on N trials (default 2; --quick 0: "
                              "estimated from its evaluation count and the measured time per evaluation)")
@@ -542,6 +545,18 @@ def _fmt(v) -> str:
 
 
 def study_precision(trials: int, seed: int, args: argparse.Namespace) -> dict:
+    from lab.executor import open_study
+
+    fingerprint = {"bench": "slam/precision", "seed": seed, "trials": trials,
+                   **{k: getattr(args, k, None) for k in ("corner_sigma_px", "sigma_target_mm", "max_views")}}
+    with open_study(args, args.out, fingerprint, "lab bench slam --only precision") as runner:
+        out = _study_precision(trials, seed, args, runner)
+        out["executor"] = runner.describe()
+        runner.finish()
+    return out
+
+
+def _study_precision(trials: int, seed: int, args: argparse.Namespace, runner) -> dict:
     """Verdicts near the tolerance and accuracy against the bound (estimation/bench_precision.py),
     at the default tolerance and at 1 mm / 0.2 deg."""
     import math
@@ -564,12 +579,12 @@ def study_precision(trials: int, seed: int, args: argparse.Namespace) -> dict:
             raise UserError(f"--max-views must be in 3..200, got {args.max_views}")
         setup = replace(setup, max_views=args.max_views)
     tight = replace(setup, tolerance_m=0.001, tolerance_rad=math.radians(0.2))
-    out = {"default": bp.study(trials, seed, setup, bp.CASES_DEFAULT, "default"),
-           "tight": bp.study(trials, seed + 1, tight, bp.CASES_TIGHT, "tight")}
+    out = {"default": bp.study(trials, seed, setup, bp.CASES_DEFAULT, "default", runner),
+           "tight": bp.study(trials, seed + 1, tight, bp.CASES_TIGHT, "tight", runner)}
     # the other observation models on the same trials (same seeds), at the default tolerance
     for obs in ("corner-info", "pose"):
         out[f"default-{obs}"] = bp.study(trials, seed, replace(setup, observation=obs), bp.CASES_DEFAULT,
-                                         f"default-{obs}")
+                                         f"default-{obs}", runner)
     out["timing"] = [bp.solve_times(seed, obs, setup) for obs in ("corners", "corner-info", "pose")]
     return out
 
