@@ -33,6 +33,7 @@ from lab.geometry import pose_error
 from lab.recorder import messages as m
 from lab.recorder import topics
 from lab.structures.borg import BorgModel, build_borg
+from procedures.borg_measure import ModuleResult
 from procedures.runner import RunContext, StepSpec, StopRun
 from procedures.setup import Bench
 from procedures.survey import CameraModel, PrecisionTarget, SurveyPlan, SurveyPlanner, View
@@ -41,29 +42,6 @@ ON_FLAG = ("stop", "continue", "retry")
 MAX_RETRIES = 2
 _STREAM_CAMERA = 8200    # simulated camera noise per step: [seed, _STREAM_CAMERA, step, attempt]
 IMAGE_FORMAT = "jpeg"    # logged images (detection runs on the lossless frame)
-
-
-@dataclass
-class ModuleResult:
-    name: str
-    verdict: str = "unverified"
-    reason: str = ""
-    position_error_m: float | None = None     # estimate vs simulated truth (hardware: None)
-    rotation_error_rad: float | None = None
-    deviation_m: float | None = None          # estimate vs design
-    deviation_rad: float | None = None
-    sigma_position_m: float | None = None     # estimated 1-sigma position uncertainty
-    tags_seen: list[int] = field(default_factory=list)
-    attempts: int = 1
-    sigma_rotation_rad: float | None = None
-    views: int = 0                            # views taken for this verdict (all rounds)
-    predicted_sigma_m: float | None = None    # what the plan expected of its views
-    bound_position_m: float | None = None     # simulation: the Cramér-Rao bound of the same views
-    bound_rotation_rad: float | None = None
-    bound_position_rms_m: float | None = None  # sqrt(trace): the expected RMS of the 3-D position error
-
-    def to_json(self) -> dict[str, Any]:
-        return {k: v for k, v in self.__dict__.items()}
 
 
 class BorgProcedure:

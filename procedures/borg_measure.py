@@ -5,6 +5,7 @@ resumed run replays the same inputs in the same order and reaches the same estim
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,29 @@ from estimation.verification import Tolerances, Verdict, verify_module
 from lab.geometry import Pose3, from_xyzquat, to_xyzquat
 from lab.recorder import messages as m
 from lab.structures.borg import BorgModel
+
+
+@dataclass
+class ModuleResult:
+    name: str
+    verdict: str = "unverified"
+    reason: str = ""
+    position_error_m: float | None = None     # estimate vs simulated truth (hardware: None)
+    rotation_error_rad: float | None = None
+    deviation_m: float | None = None          # estimate vs design
+    deviation_rad: float | None = None
+    sigma_position_m: float | None = None     # estimated 1-sigma position uncertainty
+    tags_seen: list[int] = field(default_factory=list)
+    attempts: int = 1
+    sigma_rotation_rad: float | None = None
+    views: int = 0                            # views taken for this verdict (all rounds)
+    predicted_sigma_m: float | None = None    # what the plan expected of its views
+    bound_position_m: float | None = None     # simulation: the Cramér-Rao bound of the same views
+    bound_rotation_rad: float | None = None
+    bound_position_rms_m: float | None = None  # sqrt(trace): the expected RMS of the 3-D position error
+
+    def to_json(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items()}
 
 
 class Measurement:
@@ -126,8 +150,6 @@ class Measurement:
 
     # ---- results -----------------------------------------------------------------------------------
     def verdict(self, module: str):
-        from procedures.borg import ModuleResult
-
         measured = self._measured.get(module, {})
         estimates = {t: p for t, (p, _) in measured.items()}
         covs = {t: c for t, (_, c) in measured.items() if c is not None}

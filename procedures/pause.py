@@ -47,9 +47,10 @@ class PauseControl:
 
     def install(self) -> None:
         """Take SIGINT in front of the shield (which must be installed already)."""
-        from procedures.runner import _main_thread
+        import threading
 
-        if not self.enabled or not _main_thread():
+
+        if not self.enabled or threading.current_thread() is not threading.main_thread():
             return
         self._previous = signal.getsignal(signal.SIGINT)
         signal.signal(signal.SIGINT, self._handle)

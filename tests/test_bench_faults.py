@@ -4,7 +4,7 @@ tests/test_reliability_runs.py)."""
 
 from __future__ import annotations
 
-from procedures.bench_faults import campaign
+from procedures.studies.bench_faults import campaign
 
 
 def test_the_quick_slice_of_the_fault_campaign_has_no_bad_case(tmp_path):

@@ -1,4 +1,4 @@
-"""The SLAM studies' ingredients: the paper's noise model as simulated (estimation/slam_sim.py),
+"""The SLAM studies' ingredients: the paper's noise model as simulated (procedures/studies/slam_sim.py),
 SF-GraphSLAM's gate under that noise (the shared camera error cancels in a related pair; good
 pairs are tied, a partial deployment is caught), and `lab bench slam` on a tiny instance (its JSON
 shape, its outputs, its bad-input errors).  The figures themselves are measured by the bench."""
@@ -14,8 +14,8 @@ import sys
 import numpy as np
 import pytest
 
-from estimation import bench_slam
-from estimation import slam_sim as ss
+from procedures.studies import bench_slam
+from procedures.studies import slam_sim as ss
 from estimation.sf_graphslam import SfGraphSlam
 from lab.errors import UserError
 from lab.structures.borg import build_borg

@@ -9,13 +9,13 @@ import importlib
 
 BENCHES: dict[str, tuple[str, str]] = {
     # name: (module, one-line help)
-    "slam": ("estimation.bench_slam", "GraphSLAM vs SF-GraphSLAM vs the paper's Powell method (Monte Carlo)"),
-    "fiducials": ("estimation.bench_fiducials", "AprilTag detection time and pose error on rendered images"),
-    "mle": ("estimation.bench_mle", "IPJR sequencing, MLE vs EKF vs open loop"),
-    "run": ("procedures.bench_run", "end-to-end simulated procedure runs (BORG, tetrahelix)"),
-    "calibration": ("procedures.bench_calibration", "BORG verdicts and accuracy against rig-error size, with and "
+    "slam": ("procedures.studies.bench_slam", "GraphSLAM vs SF-GraphSLAM vs the paper's Powell method (Monte Carlo)"),
+    "fiducials": ("procedures.studies.bench_fiducials", "AprilTag detection time and pose error on rendered images"),
+    "mle": ("procedures.studies.bench_mle", "IPJR sequencing, MLE vs EKF vs open loop"),
+    "run": ("procedures.studies.bench_run", "end-to-end simulated procedure runs (BORG, tetrahelix)"),
+    "calibration": ("procedures.studies.bench_calibration", "BORG verdicts and accuracy against rig-error size, with and "
                                                     "without rig calibration"),
-    "faults": ("procedures.bench_faults", "the fault campaign: device faults, kills, signals, bad input, abuse"),
+    "faults": ("procedures.studies.bench_faults", "the fault campaign: device faults, kills, signals, bad input, abuse"),
 }
 
 

@@ -26,7 +26,7 @@ def _same(a: tuple[int, np.ndarray], b: tuple[int, np.ndarray]) -> bool:
 
 
 def main() -> int:
-    from estimation import apriltag3
+    from procedures.studies import apriltag3
     from estimation.fiducials import TagDetector
 
     ours = TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)})

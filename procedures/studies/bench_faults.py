@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 LAB = [sys.executable, "-m", "lab"]
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SIM_RIG = ROOT / "lab" / "rigs" / "sim.toml"
 TRUSS = ["run", "truss", "tetrahelix:6", "--auto", "--quiet"]
 BORG = ["run", "borg", "--auto", "--quiet", "--modules", "4", "--on-flag", "continue",

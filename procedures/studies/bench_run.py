@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-SCENARIO_FAULTS = Path(__file__).resolve().parents[1] / "docs" / "scenarios" / "structure_faults.toml"
+SCENARIO_FAULTS = Path(__file__).resolve().parents[2] / "docs" / "scenarios" / "structure_faults.toml"
 TETRAHELIX_NOISE = "seed = 3\n[truss]\nsigma_length_m = 0.1\nsigma_measure_m = 0.01\n"
 
 

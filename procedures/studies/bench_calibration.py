@@ -94,7 +94,7 @@ def _scenario(seed: int, scale: float) -> str:
 
 
 def trial(out: Path, seed: int, scale: float, mode: str, modules: int, speedup: float) -> dict[str, Any]:
-    from procedures.bench_run import _median_metric
+    from procedures.studies.bench_run import _median_metric
 
     d = out / f"{mode}-x{scale:g}-seed{seed}"
     sc = out / f"scenario-x{scale:g}-seed{seed}.toml"

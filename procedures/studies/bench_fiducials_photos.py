@@ -27,7 +27,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-PHOTO_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests", "data", "photos")
+PHOTO_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tests", "data",
+                         "photos")
 MIN_SIDE_PX = 12.0
 BLUR_SIGMA_PX = 1.5
 JPEG_QUALITY = 35
@@ -201,13 +202,13 @@ def _ours():
 
 
 def _apriltag3(decimate: float = 1.0):
-    from estimation import apriltag3
+    from procedures.studies import apriltag3
 
     return lambda g: [(d.tag_id, d.corners_px) for d in apriltag3.detect(g, decimate)]
 
 
 def _detectors() -> dict[str, Callable]:
-    from estimation import apriltag3
+    from procedures.studies import apriltag3
 
     out = {"ours": _ours()}
     if apriltag3.available():
@@ -271,7 +272,7 @@ def _border_pose(rng, K, dist, W: int, H: int, size: float, edge: int):
     outermost corner within the edge pixel, the quiet zone beyond the frame."""
     import numpy as np
 
-    from estimation.bench_fiducials import tag_pose_on_ray
+    from procedures.studies.fiducial_scenes import tag_pose_on_ray
     from sim_devices.render import tag_corners_px
 
     d = rng.uniform(1.2, 2.8)
@@ -293,7 +294,7 @@ def _render_case(rng, K, dist, W, H, noise, blur, case: str, n: int):
     import cv2
     import numpy as np
 
-    from estimation.bench_fiducials import tag_pose_on_ray
+    from procedures.studies.fiducial_scenes import tag_pose_on_ray
     from sim_devices.render import render_tags, tag_corners_px
 
     size = 0.10
@@ -329,7 +330,7 @@ def render_study(frames: int, seed: int) -> dict:
     turned at random about it (any in-plane rotation), per degradation case."""
     import numpy as np
 
-    from estimation.bench_fiducials import _camera
+    from procedures.studies.fiducial_scenes import _camera
 
     K, dist, W, H, noise, blur = _camera()
     dets = _detectors()
@@ -355,8 +356,8 @@ def timing_study(frames: int, seed: int) -> dict:
     them alike; wall clock and the process's CPU time (less disturbed by other jobs on the cores)."""
     import numpy as np
 
-    from estimation import apriltag3
-    from estimation.bench_fiducials import _camera, twenty_tag_frames
+    from procedures.studies import apriltag3
+    from procedures.studies.fiducial_scenes import _camera, twenty_tag_frames
     from estimation.fiducials import TagDetector
 
     K, dist, W, H, noise, blur = _camera()
