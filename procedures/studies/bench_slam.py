@@ -842,7 +842,11 @@ def run(args: argparse.Namespace) -> int:
     def n(study: str) -> int:
         return args.trials if args.trials is not None else TRIALS[study][1 if args.quick else 0]
 
-    cmd = "lab bench slam" + (" --quick" if args.quick else "") + "".join(f" --only {s}" for s in (args.only or []))
+    cmd = ("lab bench slam" + (" --quick" if args.quick else "") + "".join(f" --only {s}" for s in (args.only or []))
+           + (f" --trials {args.trials}" if args.trials is not None else "")
+           + "".join(f" --{k.replace('_', '-')} {getattr(args, k)}" for k in ("corner_sigma_px", "sigma_target_mm",
+                                                                             "max_views")
+                     if getattr(args, k, None) is not None))
     res: dict = {"studies": {}, "seed": args.seed, "quick": bool(args.quick), "command": cmd}
     t_all = time.perf_counter()
     for study in only:
