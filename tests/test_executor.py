@@ -237,6 +237,19 @@ def test_without_dask_the_error_names_the_extra(monkeypatch):
         make_executor(scheduler="tcp://127.0.0.1:8786")
 
 
+def test_a_module_the_cluster_cannot_import_is_named():
+    from lab.executor.backends import _missing_module
+
+    try:
+        try:
+            import no_such_module_here  # noqa: F401
+        except ModuleNotFoundError as exc:
+            raise RuntimeError("Error during deserialization of the task graph") from exc
+    except RuntimeError as exc:
+        assert _missing_module(exc) == "no_such_module_here"
+    assert _missing_module(RuntimeError("other")) is None
+
+
 def test_no_scheduler_listening_is_one_line():
     pytest.importorskip("distributed")
     from lab.executor import DaskCluster

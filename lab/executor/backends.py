@@ -234,8 +234,8 @@ class LocalProcesses(TrialExecutor):
 class DaskCluster(TrialExecutor):
     """Trials on a Dask distributed cluster (`--scheduler tcp://HOST:PORT`).
 
-    The workers import the trial functions by name: they must run this project's code (the same
-    checkout, or the same installed version), see docs/benchmarks.md.  Paths in a trial (a study's
+    The scheduler and the workers import the trial functions by name: they must run this project's
+    code (the same checkout, or the same installed version), see docs/benchmarks.md.  Paths in a trial (a study's
     --out) are the workers' paths: on several machines, a shared file system."""
 
     def __init__(self, address: str, *, connect_timeout_s: float = 10.0, wait_for_workers_s: float = 30.0) -> None:
@@ -266,10 +266,14 @@ class DaskCluster(TrialExecutor):
         try:
             for future, out in distributed.as_completed(futures, loop=self._client.loop, with_results=True):
                 yield index[future.key], out
-        except ModuleNotFoundError as exc:
-            raise UserError(f"a Dask worker cannot import {exc.name!r}: start the workers from this project's "
-                            "environment (the same checkout on PYTHONPATH, or pip install -e '.[distributed]'), "
-                            "see docs/benchmarks.md") from None
+        except Exception as exc:
+            missing = _missing_module(exc)
+            if missing is None:
+                raise
+            # the scheduler unpickles the tasks too (it reports it as a RuntimeError caused by this)
+            raise UserError(f"the Dask cluster cannot import {missing!r}: start its scheduler and workers from this "
+                            "project's environment (the same checkout on PYTHONPATH, or pip install -e "
+                            "'.[distributed]'), see docs/benchmarks.md") from None
         finally:
             left = [f for f in futures if not f.done()]
             if left:
@@ -291,6 +295,16 @@ class DaskCluster(TrialExecutor):
         if pending:
             self._client.cancel(pending)
         self._client.close()
+
+
+def _missing_module(exc: BaseException | None) -> str | None:
+    """The module a ModuleNotFoundError in `exc` or its causes names, if there is one."""
+    seen = 0
+    while exc is not None and seen < 10:
+        if isinstance(exc, ModuleNotFoundError):
+            return exc.name or str(exc)
+        exc, seen = exc.__cause__ or exc.__context__, seen + 1
+    return None
 
 
 def import_distributed() -> Any:
