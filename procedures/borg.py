@@ -309,7 +309,9 @@ class BorgProcedure:
             st.home(progress)
         from procedures.setup import lift_to_zero
 
-        lift_to_zero(self.bench, run)
+        # any height but 0 among the candidates (a further round of views may use one too)
+        uses_lift = any(self.planner.lift_heights) or (self.rig_survey and bool(self.rig_survey_plan.lift_m))
+        lift_to_zero(self.bench, run, always=uses_lift)
         self._lift_at = 0.0 if self.bench.devices.lift is not None else None
         K, dist = self.intrinsics.K, self.intrinsics.dist
         run.recorder.log_calibration(topics.CAMERA_CALIBRATION, K, dist, self.intrinsics.width_px,

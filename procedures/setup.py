@@ -67,12 +67,15 @@ MAX_SPEEDUP = 1000.0
 LIFT_AT_ZERO_M = 1e-5     # the lift driver's arrival tolerance
 
 
-def lift_to_zero(bench: Bench, run: Any) -> None:
+def lift_to_zero(bench: Bench, run: Any, always: bool = False) -> None:
     """Put the lift, if the rig has one, at 0: where the rig file's Stewart base pose holds, which
     every survey that does not ask for a height (the rig calibration, a 3x3x3 BORG) assumes.  A
-    lift already there is only asked where it is: a run that never needs it moves nothing."""
+    lift already there is only asked where it is: a run that never needs it moves nothing.
+    `always`: send it home anyway (a run that will use it starts from a commanded 0, so a resumed
+    run's lift is in the state the uninterrupted run's was: the simulated carriage's error is
+    drawn per move)."""
     lift = getattr(bench.devices, "lift", None)
-    if lift is None or abs(lift.position()) <= LIFT_AT_ZERO_M:
+    if lift is None or (not always and abs(lift.position()) <= LIFT_AT_ZERO_M):
         return
     bench.moved.add(lift.name)
     with run.move("lift to 0") as progress:
