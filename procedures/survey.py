@@ -278,8 +278,10 @@ class SurveyPlanner:
         to the base on a tie); then, for what even those cannot see (the corners of a face wider
         than the camera's field from the station), the wider views (further turns, platform yaw
         and pitch) at whichever chosen or grid height sees most.  A structure the standard views
-        at the base see (the 3x3x3 BORG on the sim rig) gets exactly those.  The turntable's
-        tags count as a first step (their relations to the base modules tie the structure frame)."""
+        at the base see (the 3x3x3 BORG on the sim rig) gets exactly those.  Then the same two
+        passes for tags seen but not well (not twice from turntable angles `min_angle_separation`
+        apart).  The turntable's tags count as a first step (their relations to the base modules
+        tie the structure frame)."""
         if self.lift_limits_m is None:
             grid, base = [0.0], 0.0
         else:
@@ -297,35 +299,56 @@ class SurveyPlanner:
             present = present | set(m.tags)
             steps.append((m.name, list(m.tags), present))
         need = {t for _, tags, _ in steps for t in tags}
-        cache: dict[tuple[float, bool], set[int]] = {}
+        cache: dict[tuple[float, bool], dict[int, list[float]]] = {}
 
-        def seen_by(group: tuple[float, bool]) -> set[int]:
+        def sightings(group: tuple[float, bool]) -> dict[int, list[float]]:
+            """Tag -> the turntable angles of the group's views that see it at its step."""
             if group not in cache:
                 h, wide = group
                 views = [self._at(v, h) for v in (self._wide if wide else self._standard)]
-                out: set[int] = set()
+                out: dict[int, list[float]] = {}
                 for name, tags, placed in steps:
                     idx = [self._index[t] for t in tags]
                     for v in (self._facing(name, views) if name else views):
                         if not self._geometry(v).ok[idx].any():
                             continue
-                        out.update(self.visible(v, placed, among=tags))
-                        if out.issuperset(tags):
-                            break
+                        for t in self.visible(v, placed, among=tags):
+                            out.setdefault(t, []).append(v.turntable_rad)
                 cache[group] = out
             return cache[group]
 
+        def well(angles: list[float]) -> bool:
+            # as the coverage pass wants it: seen twice, from turntable angles far enough apart
+            # to triangulate its depth
+            return len(angles) >= self.config.min_sightings and \
+                max(angles) - min(angles) >= self.config.min_angle_separation_rad
+
         chosen = [(base, False)]
-        seen = set(seen_by(chosen[0]))
+        angles: dict[int, list[float]] = {t: list(a) for t, a in sightings(chosen[0]).items()}
+        # seen at all: the standard views at other heights, then the wider ones
         for wide in (False, True):
-            while need - seen:
-                rest = need - seen
-                gains = {(h, wide): len(seen_by((h, wide)) & rest) for h in grid if (h, wide) not in chosen}
+            while need - set(angles):
+                rest = need - set(angles)
+                gains = {(h, wide): len(set(sightings((h, wide))) & rest) for h in grid if (h, wide) not in chosen}
                 best = max(gains, key=lambda g: (gains[g], -abs(g[0] - base)), default=None)
                 if best is None or gains[best] == 0:
                     break
                 chosen.append(best)
-                seen |= seen_by(best)
+                for t, a in sightings(best).items():
+                    angles.setdefault(t, []).extend(a)
+        # then seen well (twice, far enough apart): a tag seen only from one turntable angle (the
+        # bracket of a top strut above the structure) gets a height, or a wider look, that does
+        for wide in (False, True):
+            while True:
+                weak = {t for t in need if t in angles and not well(angles[t])}
+                gains = {(h, wide): sum(1 for t in weak if well(angles[t] + sightings((h, wide)).get(t, [])))
+                         for h in grid if (h, wide) not in chosen}
+                best = max(gains, key=lambda g: (gains[g], -abs(g[0] - base)), default=None)
+                if best is None or gains[best] == 0:
+                    break
+                chosen.append(best)
+                for t, a in sightings(best).items():
+                    angles.setdefault(t, []).extend(a)
         return tuple(chosen)
 
     def plan(self, module: str, placed_modules: Sequence[str], precision: PrecisionTarget | None = None) -> SurveyPlan:
