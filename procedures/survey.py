@@ -192,7 +192,8 @@ class SurveyPlanner:
         c = self.config
         offsets = list(c.angle_offsets_rad) + [o for o in c.wide_angle_offsets_rad if o not in c.angle_offsets_rad]
         poses = list(c.stewart_poses) + [p for p in c.wide_stewart_poses if p not in c.stewart_poses]
-        extra = [v for v in self._cross(offsets, poses) if v not in set(self._standard)]
+        standard = set(self._standard)
+        extra = [v for v in self._cross(offsets, poses) if v not in standard]
         return self._standard + extra
 
     @staticmethod
