@@ -12,6 +12,7 @@ import numpy as np
 from drivers.camera import Camera
 from drivers.errors import DeviceError
 from drivers.ipjr import Ipjr
+from drivers.lift import Lift
 from drivers.ownership import Claims
 from drivers.stewart import Stewart
 from drivers.turntable import Turntable
@@ -32,10 +33,12 @@ class Devices:
     camera: Camera | None = None
     ipjrs: dict[str, Ipjr] = field(default_factory=dict)
     claims: Claims = field(default_factory=Claims)   # this process owns these devices until close()
+    lift: Lift | None = None
 
     def all(self) -> list[tuple[str, Any]]:
+        """In the rig's device order (Rig.devices)."""
         out: list[tuple[str, Any]] = []
-        for dev in (self.turntable, self.stewart, self.camera):
+        for dev in (self.turntable, self.stewart, self.lift, self.camera):
             if dev is not None:
                 out.append((dev.name, dev))
         out.extend(self.ipjrs.items())
@@ -108,6 +111,8 @@ def connect(rig: Rig, sink: CommsSink = null_sink, only: Iterable[str] | None = 
         devs.turntable = Turntable.open(rig.turntable, sink)
     if rig.stewart and want(rig.stewart.name):
         devs.stewart = Stewart.open(rig.stewart, sink)
+    if rig.lift and want(rig.lift.name):
+        devs.lift = Lift.open(rig.lift, sink)
     if rig.camera and want(rig.camera.name):
         devs.camera = Camera.open(rig.camera, sink)
     for name, cfg in rig.ipjrs.items():
@@ -145,6 +150,12 @@ def _check_one(dev: Any) -> str:
         return (f"{ident}; {st.state.lower()}; platform at x {pose[0]:+.4f} y {pose[1]:+.4f} z {pose[2]:+.4f} m, "
                 f"roll {np.degrees(pose[3]):+.2f} pitch {np.degrees(pose[4]):+.2f} yaw {np.degrees(pose[5]):+.2f} deg "
                 f"from home; legs [{hw.min_mm:g}, {hw.max_mm:g}] mm at {hw.speed_mm_s:g} mm/s; fault {st.fault}")
+    if dev.kind == "lift":
+        ident = dev.identify()
+        hw = dev.hardware()
+        st = dev.status()
+        return (f"{ident}; {st.state.lower()}, at {st.height_m * 1000:.3f} mm; hardware [{hw.min_mm:g}, "
+                f"{hw.max_mm:g}] mm at {hw.speed_mm_s:g} mm/s; fault {st.fault}")
     if dev.kind == "camera":
         ident = dev.identify()
         t0 = time.monotonic()

@@ -36,7 +36,7 @@ import gtsam
 import numpy as np
 
 from estimation.fiducials import tag_object_points
-from estimation.rig_model import (AXIS, BASE, INTRINSICS, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry,
+from estimation.rig_model import (AXIS, BASE, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry,
                                   ViewMotion, cal3_s2, chain_factor, corner_factor, nees, side_ratio, tag_prior_noise,
                                   undistort_px)
 from lab.geometry import Pose3, Rot3, to_xyzrpy
@@ -140,6 +140,8 @@ def hand_eye(views: Sequence[CalibrationView], cameras: Sequence[Pose3 | None], 
             continue
         world_T_structure = geometry.structure_T_world0.inverse()
         world_T_camera = Pose3(Rot3.Rz(v.motion.turntable_rad), np.zeros(3)).compose(world_T_structure).compose(s_T_c)
+        if v.motion.lift_m:        # back down the (nominally vertical) lift: the base at height 0
+            world_T_camera = Pose3(Rot3(), np.array([0.0, 0.0, -v.motion.lift_m])).compose(world_T_camera)
         cw = world_T_camera.inverse()
         gb = geometry.H(v.motion).inverse()
         R_w2c.append(cw.rotation().matrix())
@@ -245,6 +247,12 @@ def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, 
     values.insert(AXIS, Pose3())
     values.insert(BASE, B0)
     values.insert(MOUNT, M0)
+    if any(v.motion.lift_m for v in views):
+        # a survey from a lift height: the base is calibrated at height 0 through the lift's axis,
+        # whose tilt one height cannot see -- its prior's uncertainty goes into the base's
+        mean, cov = geometry.lift_prior()
+        graph.add(gtsam.PriorFactorPose3(LIFT, mean, gtsam.noiseModel.Gaussian.Covariance(cov)))
+        values.insert(LIFT, mean)
     f = float(K0[0, 0])
     graph.add(gtsam.PriorFactorCal3_S2(INTRINSICS, cal3_s2(K0), gtsam.noiseModel.Diagonal.Sigmas(np.array(
         [cfg.focal_sigma * f, cfg.focal_sigma * f, 1e-6, cfg.principal_point_sigma_px, cfg.principal_point_sigma_px]))))

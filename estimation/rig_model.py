@@ -1,13 +1,18 @@
 """The rig inside the factor graph: every view's camera pose is a function of the commanded turntable
 angle and Stewart pose and of calibration variables the whole run shares.
 
-    structure_T_camera(k) = structure_T_world(0) · A · Rz(-a_k) · A^-1 · B · H_k · M
+    structure_T_camera(k) = structure_T_world(0) · A · Rz(-a_k) · A^-1 · lift(h_k) · B · H_k · M
 
 - A = world_T_axis: the turntable's true axis is A's z axis.  Only its tilt (rotation about x, y)
   and offset (x, y) are observable; its yaw and height are pinned at zero by a tight prior (they
   are the gauge of "where on the axis, at which encoder zero").  The world frame is where the plate
   sits at encoder zero, so structure_T_world(0) is the design's.
-- B = world_T_base (Stewart base), M = platform_T_camera (camera mount), both 6-dof.
+- B = world_T_base (Stewart base) at lift height 0, M = platform_T_camera (camera mount), both 6-dof.
+- lift(h) = L · Tz(h) · L^-1, a pure translation by h along L's z axis: a rig with a lift carries
+  the Stewart base along its travel, whose direction is L's z axis (L = world_T_lift; only its tilt
+  is observable, its yaw and position are gauge, pinned by a tight prior).  A view at h = 0 has
+  lift(0) = identity: its factor is the four-key one, and a run that never moves the lift has no L
+  variable at all (its graph is the one it was before the lift existed).
 - H_k = home · stewart_pose_k: the platform pose the controller was told (legs are exact; their
   per-move repeatability is the chain factor's noise, with the turntable's).
 
@@ -38,7 +43,7 @@ from lab.config import CalibrationConfig, Rig
 from lab.geometry import Pose3, Rot3, from_xyzrpy
 from lab.rig_calibration import RigCalibration
 
-AXIS, BASE, MOUNT, INTRINSICS = (gtsam.symbol(c, 0) for c in "abmk")
+AXIS, BASE, MOUNT, INTRINSICS, LIFT = (gtsam.symbol(c, 0) for c in "abmkl")
 _E_RZ = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
 _GAUGE_SIGMA = 1e-7
 
@@ -49,6 +54,7 @@ class ViewMotion:
 
     turntable_rad: float
     stewart_pose: tuple[float, ...]     # (x, y, z, roll, pitch, yaw) relative to home
+    lift_m: float = 0.0                 # the lift's height (0 without a lift)
 
 
 @dataclass(frozen=True)
@@ -72,11 +78,19 @@ class RigGeometry:
     def H(self, motion: ViewMotion) -> Pose3:
         return Pose3(Rot3(), self.home_m).compose(from_xyzrpy(motion.stewart_pose))
 
-    def predict(self, motion: ViewMotion, A: Pose3, B: Pose3, M: Pose3) -> Pose3:
-        """structure_T_camera for a view, given calibration values."""
+    @staticmethod
+    def lifted(motion: ViewMotion, B: Pose3, L: Pose3 | None = None) -> Pose3:
+        """The Stewart base carried to the view's lift height along L's z axis."""
+        if not motion.lift_m:
+            return B
+        L = L if L is not None else Pose3()
+        return L.compose(Pose3(Rot3(), np.array([0.0, 0.0, motion.lift_m]))).compose(L.inverse()).compose(B)
+
+    def predict(self, motion: ViewMotion, A: Pose3, B: Pose3, M: Pose3, L: Pose3 | None = None) -> Pose3:
+        """structure_T_camera for a view, given calibration values (L: the lift's axis frame)."""
         Rz = Pose3(Rot3.Rz(-motion.turntable_rad), np.zeros(3))
-        return self.structure_T_world0.compose(A).compose(Rz).compose(A.inverse()).compose(B).compose(
-            self.H(motion)).compose(M)
+        return self.structure_T_world0.compose(A).compose(Rz).compose(A.inverse()).compose(
+            self.lifted(motion, B, L)).compose(self.H(motion)).compose(M)
 
     def predict_nominal(self, motion: ViewMotion) -> Pose3:
         return self.predict(motion, Pose3(), self.nominal_world_T_base, self.nominal_platform_T_camera)
@@ -103,8 +117,16 @@ class RigGeometry:
                     MOUNT: np.diag([c.camera_mount_sigma_rad] * 3 + [c.camera_mount_sigma_m] * 3) ** 2}
         return means, covs
 
+    def lift_prior(self) -> tuple[Pose3, np.ndarray]:
+        """The lift's axis: vertical, known to the [calibration] lift_axis_sigma in tilt; its yaw
+        and position are gauge (they do not change lift(h))."""
+        t = self.config.lift_axis_sigma_rad
+        return Pose3(), np.diag([t, t, _GAUGE_SIGMA, _GAUGE_SIGMA, _GAUGE_SIGMA, _GAUGE_SIGMA]) ** 2
+
     def chain_noise(self, motion: ViewMotion, M: Pose3 | None = None) -> gtsam.noiseModel.Base:
-        """The devices' repeatability, propagated to the camera pose (its tangent)."""
+        """The devices' repeatability, propagated to the camera pose (its tangent).  A lifted view
+        adds the lift carriage's: a translation of the base, isotropic, so the same in the camera's
+        axes."""
         c = self.config
         M = M or self.nominal_platform_T_camera
         AdM = M.inverse().AdjointMap()
@@ -112,13 +134,17 @@ class RigGeometry:
         X2 = self.nominal_world_T_base.compose(self.H(motion)).compose(M)
         j = -X2.inverse().AdjointMap() @ _E_RZ
         cov = AdM @ S @ AdM.T + c.turntable_repeatability_rad ** 2 * np.outer(j, j) + np.eye(6) * 1e-12
+        if motion.lift_m:
+            cov[3:, 3:] += np.eye(3) * c.lift_repeatability_m ** 2
         return gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
 
 
 def chain_factor(geometry: RigGeometry, motion: ViewMotion, camera_key: int,
                  noise: gtsam.noiseModel.Base | None = None) -> gtsam.CustomFactor:
     """e = Log(P^-1 · C) with P the chain's prediction; Jacobians by the adjoint (checked against
-    numerical derivatives in tests/test_rig_model.py)."""
+    numerical derivatives in tests/test_rig_model.py).  Keys A, B, M, C; and L for a lifted view."""
+    if motion.lift_m:
+        return _lifted_chain_factor(geometry, motion, camera_key, noise)
     S0inv = geometry.structure_T_world0
     Rz = Pose3(Rot3.Rz(-motion.turntable_rad), np.zeros(3))
     H = geometry.H(motion)
@@ -144,6 +170,43 @@ def chain_factor(geometry: RigGeometry, motion: ViewMotion, camera_key: int,
         return e
 
     return gtsam.CustomFactor(noise or geometry.chain_noise(motion), [AXIS, BASE, MOUNT, camera_key], error)
+
+
+def _lifted_chain_factor(geometry: RigGeometry, motion: ViewMotion, camera_key: int,
+                         noise: gtsam.noiseModel.Base | None) -> gtsam.CustomFactor:
+    """The chain of a view at lift height h: P = S0^-1 · A · Rz · A^-1 · (L · Tz(h) · L^-1) · B · H · M.
+    A right perturbation of a frame that appears as X · W · X^-1 (A about Rz, L about Tz) moves P by
+    (Ad(after-first^-1) - Ad(after-second^-1)) of it, as for the turntable's axis."""
+    S0inv = geometry.structure_T_world0
+    Rz = Pose3(Rot3.Rz(-motion.turntable_rad), np.zeros(3))
+    Tz = Pose3(Rot3(), np.array([0.0, 0.0, motion.lift_m]))
+    H = geometry.H(motion)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
+        A = values.atPose3(AXIS)
+        B = values.atPose3(BASE)
+        M = values.atPose3(MOUNT)
+        C = values.atPose3(camera_key)
+        L = values.atPose3(LIFT)
+        HM = H.compose(M)
+        Z2 = L.inverse().compose(B).compose(HM)       # after L^-1
+        Z1 = Tz.compose(Z2)                           # after L
+        X2 = A.inverse().compose(L).compose(Z1)       # after A^-1
+        X1 = Rz.compose(X2)                           # after A
+        P = S0inv.compose(A).compose(X1)
+        E = P.inverse().compose(C)
+        e = Pose3.Logmap(E)
+        if jacobians is not None:
+            Jl = Pose3.LogmapDerivative(e)
+            JP = -Jl @ E.inverse().AdjointMap()
+            jacobians[0] = JP @ (X1.inverse().AdjointMap() - X2.inverse().AdjointMap())
+            jacobians[1] = JP @ HM.inverse().AdjointMap()
+            jacobians[2] = JP
+            jacobians[3] = Jl
+            jacobians[4] = JP @ (Z1.inverse().AdjointMap() - Z2.inverse().AdjointMap())
+        return e
+
+    return gtsam.CustomFactor(noise or geometry.chain_noise(motion), [AXIS, BASE, MOUNT, camera_key, LIFT], error)
 
 
 def cal3_s2(K: np.ndarray) -> gtsam.Cal3_S2:

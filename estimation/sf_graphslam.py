@@ -37,7 +37,7 @@ import gtsam
 import numpy as np
 
 from estimation.fiducials import Detection, tag_object_points
-from estimation.rig_model import (AXIS, BASE, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
+from estimation.rig_model import (AXIS, BASE, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
                                   chain_factor, corner_factor, side_ratio, tag_prior_noise, undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.geometry import Pose3, Rot3
@@ -176,7 +176,19 @@ class SfGraphSlam:
     def predicted_camera(self, motion: ViewMotion) -> Pose3:
         """structure_T_camera for a view from the current calibration estimate."""
         assert self.rig is not None
-        return self.rig.predict(motion, *(self.estimate.atPose3(k) for k in (AXIS, BASE, MOUNT)))
+        lift = self.estimate.atPose3(LIFT) if self.estimate.exists(LIFT) else self.rig.lift_prior()[0]
+        return self.rig.predict(motion, *(self.estimate.atPose3(k) for k in (AXIS, BASE, MOUNT)), lift)
+
+    def _lift_prior(self) -> None:
+        """The lift's axis joins the graph with the first view taken off the lift's zero: a run
+        that never moves the lift keeps the graph it had before there was one."""
+        assert self.rig is not None
+        if self.initial.exists(LIFT):
+            return
+        mean, cov = self.rig.lift_prior()
+        f = gtsam.PriorFactorPose3(LIFT, mean, gtsam.noiseModel.Gaussian.Covariance(cov))
+        self._add(f, ("rig_prior", f, LIFT, mean))
+        self._value(LIFT, mean)
 
     def key(self, tag: int) -> int:
         return _T(tag + GENERATION * self.generation.get(tag, 0))
@@ -205,6 +217,8 @@ class SfGraphSlam:
         if self.rig is not None:
             if motion is None:
                 raise ValueError("a graph with a rig model needs each view's commanded motion")
+            if motion.lift_m:
+                self._lift_prior()
             structure_T_camera = self.predicted_camera(motion)
             self._add(chain_factor(self.rig, motion, C(k)), ("chain", motion, C(k)))
         else:

@@ -50,23 +50,33 @@ def eliminate_tags(estimates: Mapping[int, Pose3], model: BorgModel, *, cutoff_m
     design = np.array([model.tags[t].structure_T_tag.translation() for t in ids])
     est = np.array([estimates[t].translation() for t in ids])
     explained = explained_axes or {}
+    # each explained tag's mechanism axis (unit), zero for the others: its component is removed
+    axes = np.zeros_like(est)
+    for k, t in enumerate(ids):
+        if t in explained:
+            a = np.asarray(explained[t], dtype=float)
+            axes[k] = a / np.linalg.norm(a)
+
+    def residuals(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """|est - (R design + p)| less the explained components; R (..., 3, 3), p (..., 3)."""
+        diff = est - (design @ np.swapaxes(R, -1, -2) + p[..., None, :])
+        if explained:
+            diff -= (diff * axes).sum(axis=-1)[..., None] * axes
+        return np.sqrt((diff * diff).sum(axis=-1))
 
     def distances(fit: Pose3) -> np.ndarray:
-        pred = (fit.rotation().matrix() @ design.T).T + fit.translation()
-        diff = est - pred
-        for k, t in enumerate(ids):
-            if t in explained:
-                a = np.asarray(explained[t], dtype=float)
-                a = a / np.linalg.norm(a)
-                diff[k] -= np.dot(diff[k], a) * a
-        return np.linalg.norm(diff, axis=1)
+        return residuals(fit.rotation().matrix(), fit.translation())
 
     # the paper's start: everything predicted from one base tag (the most consistent one if not given)
     def base_fit(b: int) -> Pose3:
         return estimates[b].compose(model.tags[b].structure_T_tag.inverse())
 
     if base_tag is None or base_tag not in estimates:
-        base_tag = min(ids, key=lambda b: float(np.median(distances(base_fit(b)))))
+        # every candidate base tag at once (a 5x5x5 has 154 tags: 154 fits of 154 predictions)
+        fits = [base_fit(b) for b in ids]
+        R = np.array([f.rotation().matrix() for f in fits])
+        p = np.array([f.translation() for f in fits])
+        base_tag = ids[int(np.argmin(np.median(residuals(R, p), axis=1)))]
     fit = base_fit(base_tag)
     inliers = distances(fit) <= cutoff_m
     # an explained tag is off its design spot by its mechanism's motion: it must not bend the

@@ -24,7 +24,7 @@ from lab.errors import UserError
 from lab.geometry import Pose3, from_xyzrpy
 from lab import rig_error as rig_errors   # the record is RigError too, like this module's exception
 
-DeviceKind = Literal["turntable", "stewart", "camera", "ipjr"]
+DeviceKind = Literal["turntable", "stewart", "lift", "camera", "ipjr"]
 
 DEFAULT_RIG = "sim.toml"
 
@@ -53,6 +53,18 @@ class TurntableConfig:
     link: Link
     min_rad: float
     max_rad: float
+
+
+@dataclass(frozen=True)
+class LiftConfig:
+    """A vertical linear stage carrying the Stewart base (docs/hardware.md, "The lift"): at height
+    0 the base sits where [stewart] world_T_base says; a height h raises it by h along the lift's
+    axis (nominally world z; its true tilt is calibrated in the run's graph)."""
+
+    name: str
+    link: Link
+    min_m: float                    # soft limits, checked before sending
+    max_m: float
 
 
 @dataclass(frozen=True)
@@ -111,6 +123,7 @@ class SimConfig:
     stewart: dict[str, float] = field(default_factory=dict)
     camera: dict[str, Any] = field(default_factory=dict)
     ipjr: dict[str, float] = field(default_factory=dict)
+    lift: dict[str, float] = field(default_factory=dict)
     rig_error: rig_errors.RigError = field(default_factory=rig_errors.RigError)   # the true bench vs this file
 
 
@@ -133,6 +146,10 @@ class CalibrationConfig:
     stewart_repeatability_m: float = 0.00002
     stewart_repeatability_rad: float = math.radians(0.002)
     turntable_repeatability_rad: float = math.radians(0.005)
+    # the lift (only with a [lift] table): how far its travel may be from world z before the run
+    # calibrates it, and the datasheet repeatability of its carriage, per axis
+    lift_axis_sigma_rad: float = math.radians(0.1)
+    lift_repeatability_m: float = 0.00002
 
 
 MODULE_KINDS = ("deployable", "closeout_strut", "closeout_square")
@@ -191,6 +208,8 @@ _CALIBRATION_KEYS = (
     ("stewart_repeatability_mm", 0.02, 1e-3, "stewart_repeatability_m"),
     ("stewart_repeatability_deg", 0.002, math.pi / 180, "stewart_repeatability_rad"),
     ("turntable_repeatability_deg", 0.005, math.pi / 180, "turntable_repeatability_rad"),
+    ("lift_axis_sigma_deg", 0.1, math.pi / 180, "lift_axis_sigma_rad"),
+    ("lift_repeatability_mm", 0.02, 1e-3, "lift_repeatability_m"),
 )
 
 
@@ -223,6 +242,7 @@ class Rig:
     data: dict[str, Any] = field(default_factory=dict)   # the file as read, for the run's start record
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     verification: VerificationConfig = field(default_factory=VerificationConfig)
+    lift: LiftConfig | None = None
 
     @property
     def simulated(self) -> bool:
@@ -234,6 +254,8 @@ class Rig:
             yield self.turntable.name, "turntable", self.turntable.link.url
         if self.stewart:
             yield self.stewart.name, "stewart", self.stewart.link.url
+        if self.lift:
+            yield self.lift.name, "lift", self.lift.link.url
         if self.camera:
             yield self.camera.name, "camera", self.camera.url
         for ipjr in self.ipjrs.values():
@@ -244,25 +266,29 @@ class Rig:
         unknown = set(urls) - {n for n, _, _ in self.devices()}
         if unknown:
             raise KeyError(f"no device named {sorted(unknown)} in rig {self.name!r}")
-        tt, sp, cam = self.turntable, self.stewart, self.camera
+        tt, sp, cam, lift = self.turntable, self.stewart, self.camera, self.lift
         if tt and tt.name in urls:
             tt = replace(tt, link=replace(tt.link, url=urls[tt.name]))
         if sp and sp.name in urls:
             sp = replace(sp, link=replace(sp.link, url=urls[sp.name]))
+        if lift and lift.name in urls:
+            lift = replace(lift, link=replace(lift.link, url=urls[lift.name]))
         if cam and cam.name in urls:
             cam = replace(cam, url=urls[cam.name])
         ipjrs = {n: replace(c, link=replace(c.link, url=urls[n])) if n in urls else c for n, c in self.ipjrs.items()}
-        return replace(self, turntable=tt, stewart=sp, camera=cam, ipjrs=ipjrs)
+        return replace(self, turntable=tt, stewart=sp, camera=cam, ipjrs=ipjrs, lift=lift)
 
     def with_links(self, **changes: Any) -> Rig:
         """Every serial/HTTP link with some fields changed (tests: shorter timeouts)."""
-        tt, sp = self.turntable, self.stewart
+        tt, sp, lift = self.turntable, self.stewart, self.lift
         if tt:
             tt = replace(tt, link=replace(tt.link, **changes))
         if sp:
             sp = replace(sp, link=replace(sp.link, **changes))
+        if lift:
+            lift = replace(lift, link=replace(lift.link, **changes))
         ipjrs = {n: replace(c, link=replace(c.link, **changes)) for n, c in self.ipjrs.items()}
-        return replace(self, turntable=tt, stewart=sp, ipjrs=ipjrs)
+        return replace(self, turntable=tt, stewart=sp, ipjrs=ipjrs, lift=lift)
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "source": self.source, "simulated": self.simulated,
@@ -336,6 +362,18 @@ def parse_rig(data: dict[str, Any], source: str = "<dict>", base_dir: Path | Non
         s.done()
         stewart = StewartConfig(nm, link, geometry, world_T_base)
 
+    lift = None
+    if "lift" in data:
+        lt = top.table("lift")
+        nm = claim(lt.string("name", default="lift"), "[lift]")
+        link = _link(lt)
+        lo = lt.number("min_m", minimum=-10.0, maximum=10.0, unit="m")
+        hi = lt.number("max_m", minimum=-10.0, maximum=10.0, unit="m")
+        if not lo < hi:
+            raise lt.error("max_m", f"must be greater than min_m ({lo} m), got {hi} m")
+        lt.done()
+        lift = LiftConfig(nm, link, lo, hi)
+
     camera = None
     if "camera" in data:
         c = top.table("camera")
@@ -387,7 +425,8 @@ def parse_rig(data: dict[str, Any], source: str = "<dict>", base_dir: Path | Non
     top.done()
     if not names:
         raise RigError(f"rig {source}: no devices: add at least one of [turntable], [stewart], [camera], [ipjr.NAME]")
-    return Rig(name, source, turntable, stewart, camera, ipjrs, sim, description, data, calibration, verification)
+    return Rig(name, source, turntable, stewart, camera, ipjrs, sim, description, data, calibration, verification,
+               lift)
 
 
 def _link(t: _Table) -> Link:
@@ -466,10 +505,13 @@ _SIM_DEVICE_KEYS: dict[str, dict[str, tuple[float, float]]] = {
     "ipjr": {"speed_mm_s": (10.0, 1.0), "settle_s": (0.1, 0.0), "volts_noise_v": (0.002, 0.0),
              "step_scale_sigma": (0.02, 0.0), "move_sigma_m": (0.00005, 0.0), "calibration_sigma_v": (0.005, 0.0),
              "start_extension_m": (0.07, 0.0)},
+    # hardware travel (mm, as LIMITS? reports it), top speed, settling (a tall column sways)
+    "lift": {"speed_mm_s": (100.0, 1.0), "settle_s": (0.5, 0.0), "min_mm": (-600.0, -1e4), "max_mm": (2600.0, -1e4)},
 }
 # A simulated device slower than this never finishes a run (a 0.001 deg/s turntable), one faster is
 # no instrument: refused with the key named.  `--speedup` has the same ceiling.
 _SIM_MAXIMA = {"speed_deg_s": 720.0, "speed_mm_s": 1000.0, "settle_s": 60.0, "min_deg": 1e4, "max_deg": 1e4,
+               "min_mm": 1e4, "max_mm": 1e4,
                "stroke_margin_mm": 100.0, "volts_noise_v": 1.0, "step_scale_sigma": 0.5, "move_sigma_m": 0.01,
                "calibration_sigma_v": 1.0, "start_extension_m": 1.0}
 MAX_SPEEDUP = 1000.0
@@ -501,8 +543,10 @@ def _sim(t: _Table) -> SimConfig:
     rig_error = rig_errors.parse_rig_error(t._get("rig_error", {}), lambda key, problem: t.error(
         f"rig_error.{key}" if key else "rig_error", problem))
     t.done()
+    if not sections["lift"]["min_mm"] < sections["lift"]["max_mm"]:
+        raise t.error("lift.max_mm", f"must be greater than lift.min_mm ({sections['lift']['min_mm']} mm)")
     return SimConfig(seed, speedup, borg_n, pty, sections["turntable"], sections["stewart"], camera,
-                     sections["ipjr"], rig_error)
+                     sections["ipjr"], sections["lift"], rig_error)
 
 
 # --------------------------------------------------------------------------------------------

@@ -22,6 +22,9 @@ means none).  Keys, units in their names (docs/scenarios.md):
     stewart_repeatability_m   per-move random error of the platform pose, 1 sigma per axis
     stewart_repeatability_rad
     turntable_repeatability_rad  per-move random error of the turntable angle, 1 sigma
+    lift_axis_tilt_rad        the lift's true travel direction, tilted from world z about x and y
+                              (a height h moves the base h along it: h times the tilt sideways)
+    lift_repeatability_m      per-move random error of the lift's carriage, 1 sigma per axis
 """
 
 from __future__ import annotations
@@ -48,6 +51,8 @@ class RigError:
     stewart_repeatability_m: float = 0.0
     stewart_repeatability_rad: float = 0.0
     turntable_repeatability_rad: float = 0.0
+    lift_axis_tilt_rad: Vec2 = (0.0, 0.0)
+    lift_repeatability_m: float = 0.0
 
     @property
     def ideal(self) -> bool:
@@ -81,20 +86,22 @@ class RigError:
                 "turntable_axis_tilt_deg": math.degrees(n(self.turntable_axis_tilt_rad)),
                 "focal_percent": (self.focal_scale - 1.0) * 100.0,
                 "principal_point_px": n(self.principal_point_offset_px),
-                "turntable_tag_mm": self.turntable_tag_sigma_m * 1e3}
+                "turntable_tag_mm": self.turntable_tag_sigma_m * 1e3,
+                "lift_axis_tilt_deg": math.degrees(n(self.lift_axis_tilt_rad))}
 
 
 _VECTORS = {"camera_mount_offset_m": 3, "camera_mount_rotation_rad": 3, "stewart_base_offset_m": 3,
             "stewart_base_rotation_rad": 3, "turntable_axis_offset_m": 2, "turntable_axis_tilt_rad": 2,
-            "principal_point_offset_px": 2}
+            "principal_point_offset_px": 2, "lift_axis_tilt_rad": 2}
 _SCALARS = ("focal_scale", "turntable_tag_sigma_m", "stewart_repeatability_m", "stewart_repeatability_rad",
-            "turntable_repeatability_rad")
+            "turntable_repeatability_rad", "lift_repeatability_m")
 KEYS = tuple(_VECTORS) + _SCALARS
 # Beyond these the rig is not "known roughly" but wrong: a typo in a unit, most likely.
 _BOUNDS = {"camera_mount_offset_m": 0.1, "camera_mount_rotation_rad": 0.2, "stewart_base_offset_m": 0.2,
            "stewart_base_rotation_rad": 0.2, "turntable_axis_offset_m": 0.05, "turntable_axis_tilt_rad": 0.05,
            "principal_point_offset_px": 50.0, "turntable_tag_sigma_m": 0.02, "stewart_repeatability_m": 0.005,
-           "stewart_repeatability_rad": 0.01, "turntable_repeatability_rad": 0.01}
+           "stewart_repeatability_rad": 0.01, "turntable_repeatability_rad": 0.01, "lift_axis_tilt_rad": 0.05,
+           "lift_repeatability_m": 0.005}
 
 
 def parse_rig_error(table: Any, error: Callable[[str, str], Exception]) -> RigError:

@@ -10,8 +10,11 @@ covariance, up to the step's view budget; still open then, it stays `uncertain`.
 run (default), is noted and passed (`--on-flag continue`), or sends the operator to re-deploy and
 re-measure (`retry`).
 
-Everything is planned before the first move, so `--dry-run` checks every turntable angle and
-Stewart pose of the whole procedure against the limits and the workspace.
+Everything is planned before the first move, so `--dry-run` checks every turntable angle, lift
+height and Stewart pose of the whole procedure against the limits and the workspace, and lists
+every module no candidate view of the rig can see.  A run with such modules is refused before
+anything moves unless `--allow-unobservable` says to go on; then it warns at its start and those
+modules come out `unverified`, naming why.
 """
 
 from __future__ import annotations
@@ -44,6 +47,14 @@ _STREAM_CAMERA = 8200    # simulated camera noise per step: [seed, _STREAM_CAMER
 IMAGE_FORMAT = "jpeg"    # logged images (detection runs on the lossless frame)
 
 
+class UnobservableModules(UserError):
+    """Modules no candidate view of the rig sees: a run refuses to start (`lines` lists them)."""
+
+    def __init__(self, message: str, lines: list[str]) -> None:
+        super().__init__(message)
+        self.lines = lines
+
+
 class BorgProcedure:
     name = "borg"
 
@@ -51,11 +62,12 @@ class BorgProcedure:
                  estimator_config: Any = None, calibration: str | None = None, rig_survey: bool | None = None,
                  observation: str | None = None, uncalibrated: bool = False,
                  tolerances: list[str] | None = None, sigma_target_mm: float | None = None,
-                 max_views: int | None = None) -> None:
+                 max_views: int | None = None, allow_unobservable: bool = False) -> None:
         """`calibration`: a rig calibration file (default: the rig's [calibration] file).
         `rig_survey`: begin with a rig calibration survey (default: when there is no calibration).
         `tolerances` ("KIND=MM,DEG"), `sigma_target_mm`, `max_views`: override the rig's
-        [verification] table."""
+        [verification] table.  `allow_unobservable`: run even if the rig cannot see some modules
+        (they are reported `unverified`); otherwise `check_observable` refuses the run."""
         if on_flag not in ON_FLAG:
             raise UserError(f"--on-flag must be one of {', '.join(ON_FLAG)}, got {on_flag!r}")
         rig = bench.rig
@@ -84,8 +96,10 @@ class BorgProcedure:
         cam = CameraModel(self.intrinsics.K, self.intrinsics.width_px, self.intrinsics.height_px,
                           rig.stewart.world_T_base, rig.stewart.geometry.home_m, rig.camera.platform_T_camera)
         self.camera_model = cam
+        # a lift gives the planner heights to look from (none when the lift's zero sees it all)
+        lift = (rig.lift.min_m, rig.lift.max_m) if rig.lift is not None else None
         self.planner = SurveyPlanner(self.model, cam, lambda p: self.kinematics.inverse(p).reachable,
-                                     (rig.turntable.min_rad, rig.turntable.max_rad))
+                                     (rig.turntable.min_rad, rig.turntable.max_rad), lift_limits_m=lift)
         ver = rig.verification
         self.tolerances = parse_tolerances(tolerances or [], ver)
         if sigma_target_mm is not None and not (math.isfinite(sigma_target_mm) and 0 < sigma_target_mm <= 100):
@@ -103,6 +117,11 @@ class BorgProcedure:
         for mod in modules:
             placed.append(mod.name)
             self.surveys[mod.name] = self.planner.plan(mod.name, placed, self.precision)
+        # modules whose tags no candidate view sees (at their step, with what is placed in front)
+        self.unobservable = {name: plan.unobservable for name, plan in self.surveys.items() if plan.unobservable}
+        self.allow_unobservable = bool(allow_unobservable)
+        self._unobservable_warned = False
+        self._lift_at: float | None = None       # where the lift is known to be (None: not asked yet)
         from estimation.rig_model import RigGeometry
         from procedures.borg_measure import Measurement
 
@@ -145,18 +164,55 @@ class BorgProcedure:
 
     @cached_property
     def rig_survey_plan(self):
-        from procedures.rig_survey import plan_rig_survey
+        from procedures.rig_survey import plan_rig_survey, survey_lift
 
         rig = self.bench.rig
         # a turntable sweep per platform pose: the shortest survey for the same views
-        return plan_rig_survey(lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable,
+        plan = plan_rig_survey(lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable,
                                (rig.turntable.min_rad, rig.turntable.max_rad), order="poses")
+        # a bigger turntable's rim is seen from lower down (0 for the 3x3x3's, and without a lift)
+        lift = survey_lift(self.planner, plan, self.planner.lift_limits_m)
+        if not lift:
+            return plan
+        return plan_rig_survey(lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable,
+                               (rig.turntable.min_rad, rig.turntable.max_rad), order="poses", lift_m=lift)
+
+    def unobservable_lines(self) -> list[str]:
+        """One line per module the rig cannot observe: which tags, where."""
+        out = []
+        for name, tags in self.unobservable.items():
+            m = self.model.module_by_name[name]
+            where = ", ".join(f"{t} at z {self.model.tags[t].structure_T_tag.translation()[2]:.2f} m" for t in tags)
+            out.append(f"module {name} ({m.kind.replace('_', ' ')}, face {m.face}): no candidate view of rig "
+                       f"{self.bench.rig.name!r} sees tag{'s' if len(tags) > 1 else ''} {where}")
+        return out
+
+    def check_observable(self) -> None:
+        """Before anything moves: refuse a run the rig cannot see all of, unless told to go on."""
+        if self.unobservable and not self.allow_unobservable:
+            raise UnobservableModules(
+                f"rig {self.bench.rig.name!r} cannot observe {len(self.unobservable)} of the {len(self.modules)} "
+                f"modules of borg:{self.model.n} planned (listed above); nothing moved. Give the rig a lift "
+                f"(docs/hardware.md, \"The lift\"), or run with --allow-unobservable to assemble them anyway "
+                f"(reported unverified)", self.unobservable_lines())
+
+    def dry_run_warnings(self, steps: list[StepSpec]) -> list[str]:
+        if not self.allow_unobservable:
+            return []
+        return [f"{line}: it will be unverified (--allow-unobservable)" for line in self.unobservable_lines()]
 
     def dry_run_problems(self, steps: list[StepSpec]) -> list[str]:
-        tt, st = self.bench.devices.turntable, self.bench.devices.stewart
+        tt, st, lift = self.bench.devices.turntable, self.bench.devices.stewart, self.bench.devices.lift
         problems = []
         for spec in steps:
             if "rig_survey" in spec.params:
+                if self.rig_survey_plan.lift_m:
+                    try:
+                        if lift is None:
+                            raise UserError(f"the rig survey needs a lift and rig {self.bench.rig.name!r} has none")
+                        lift.check_height(self.rig_survey_plan.lift_m)
+                    except Exception as exc:
+                        problems.append(f"{spec.name}: {exc}")
                 for v in self.rig_survey_plan.views:
                     for check, arg in ((tt.check_angle, v.turntable_rad), (st.check_pose, v.stewart_pose)):
                         try:
@@ -173,12 +229,24 @@ class BorgProcedure:
                     st.check_pose(v.stewart_pose)
                 except Exception as exc:
                     problems.append(f"{spec.name}: {exc}")
-            if self.surveys[spec.params["module"]].unobservable:
-                problems.append(f"{spec.name}: no planned view sees tags {self.surveys[spec.params['module']].unobservable}")
+                if v.lift_m:
+                    try:
+                        if lift is None:
+                            raise UserError(f"view {v.label} needs a lift and rig {self.bench.rig.name!r} has none")
+                        lift.check_height(v.lift_m)
+                    except Exception as exc:
+                        problems.append(f"{spec.name}: {exc}")
+        if not self.allow_unobservable:
+            problems += self.unobservable_lines()
         return problems
 
     # ---- one step ------------------------------------------------------------------------------
     def execute(self, spec: StepSpec, run: RunContext) -> None:
+        if not self._unobservable_warned:
+            # allowed to run (check_observable refused it otherwise): say so before the first move
+            for line in self.unobservable_lines():
+                run.recorder.log_text("warning", f"{line}: it will be unverified")
+            self._unobservable_warned = True
         if not self.homed:
             self._home(run)
         if "rig_survey" in spec.params:
@@ -219,6 +287,12 @@ class BorgProcedure:
             tt.ensure_homed(progress)
         with run.move("Stewart platform home") as progress:
             st.home(progress)
+        from procedures.setup import lift_to_zero
+
+        # any height but 0 among the candidates (a further round of views may use one too)
+        uses_lift = any(self.planner.lift_heights) or (self.rig_survey and bool(self.rig_survey_plan.lift_m))
+        lift_to_zero(self.bench, run, always=uses_lift)
+        self._lift_at = 0.0 if self.bench.devices.lift is not None else None
         K, dist = self.intrinsics.K, self.intrinsics.dist
         run.recorder.log_calibration(topics.CAMERA_CALIBRATION, K, dist, self.intrinsics.width_px,
                                      self.intrinsics.height_px, "camera")
@@ -239,6 +313,8 @@ class BorgProcedure:
                         seed=[self.bench.scenario.seed, _STREAM_CAMERA, spec.index],
                         log_image=lambda frame, t: rec.log_image(topics.CAMERA_IMAGE, frame.image, t, "camera",
                                                                  format=IMAGE_FORMAT), overlap=True)
+        if self.bench.devices.lift is not None:
+            self._lift_at = self.rig_survey_plan.lift_m
         self.rig_survey_views = views_to_json(views)
         t0 = time.perf_counter()
         sol = self._solve_rig_survey(views)
@@ -306,6 +382,9 @@ class BorgProcedure:
                                  f"{_num(result.sigma_position_m, 1000, 2)} mm); {len(plan.views)} more view(s)")
         result.views = len(taken)
         result.predicted_sigma_m = self.surveys[name].predicted_sigma_m
+        if result.verdict == "unverified" and name in self.unobservable:
+            tags = ", ".join(map(str, self.unobservable[name]))
+            result.reason = f"the rig cannot observe it (no candidate view sees tag {tags}); {result.reason}".rstrip("; ")
         if self.bench.simulated:
             self._truth_errors(result)
             self._bound(result, name)   # of the graph the verdict read, before the module's relations join
@@ -324,7 +403,7 @@ class BorgProcedure:
         import gtsam
 
         from estimation.precision import bound_covariances, module_sigma
-        from estimation.rig_model import AXIS, BASE, MOUNT
+        from estimation.rig_model import AXIS, BASE, LIFT, MOUNT
         from estimation.sf_graphslam import GENERATION
         from dataclasses import replace
 
@@ -335,7 +414,8 @@ class BorgProcedure:
         true_geometry = replace(self.rig_geometry, config=replace(
             self.rig_geometry.config, stewart_repeatability_m=max(e.stewart_repeatability_m, floor),
             stewart_repeatability_rad=max(e.stewart_repeatability_rad, floor),
-            turntable_repeatability_rad=max(e.turntable_repeatability_rad, floor)))
+            turntable_repeatability_rad=max(e.turntable_repeatability_rad, floor),
+            lift_repeatability_m=max(e.lift_repeatability_m, floor)))
         # priors with the true noise: a rig file that is exact (an ideal rig) is an exact prior; a
         # calibration's covariance is its own honest statement of how wrong it is
         exact_rig = self.rig_calibration is None and self.rig_survey_result is None and e == type(e)()
@@ -347,7 +427,7 @@ class BorgProcedure:
                                  turntable_tag_sigma_m=None if calibrated else max(e.turntable_tag_sigma_m, floor))
         truth = gtsam.Values()
         rig = {AXIS: world.true_rig.world_T_axis, BASE: world.true_rig.world_T_base,
-               MOUNT: world.true_rig.platform_T_camera}
+               MOUNT: world.true_rig.platform_T_camera, LIFT: world.true_rig.world_T_lift}
         for key in graph.keyVector():
             sym = gtsam.Symbol(key)
             ch, idx = chr(sym.chr()), sym.index()
@@ -404,6 +484,7 @@ class BorgProcedure:
             rec.log_record(topics.DETECTIONS, self.measure.detections_message(detections, t))
             record = {"module": name, "step": spec.index, "attempt": attempt, "round": rnd, "view": k,
                       "turntable_rad": view.turntable_rad, "stewart_pose": list(view.stewart_pose),
+                      "lift_m": view.lift_m,
                       "structure_T_camera": structure_T_camera.matrix().tolist(),
                       "detections": self.measure.detections_to_json(detections)}
             if self.bench.simulated:
@@ -429,6 +510,13 @@ class BorgProcedure:
     def _capture(self, run: RunContext, view: View, step: int, attempt: int, k: int):
         devices = self.bench.devices
         tt, st, cam = devices.turntable, devices.stewart, devices.camera
+        if devices.lift is not None and view.lift_m != self._lift_at:
+            self.bench.moved.add(devices.lift.name)
+            with run.move(f"lift to {view.lift_m * 1000:+.0f} mm") as progress:
+                devices.lift.move_to(view.lift_m, progress)
+            self._lift_at = view.lift_m
+        elif devices.lift is None and view.lift_m:
+            raise UserError(f"view {view.label} needs a lift and rig {self.bench.rig.name!r} has none")
         with run.move(f"turntable to {np.degrees(view.turntable_rad):+.0f} deg") as progress:
             tt.move_to(view.turntable_rad, progress)
         with run.move("Stewart platform") as progress:

@@ -111,7 +111,8 @@ class Measurement:
         self.last_views = []
         for v in views:
             structure_T_camera = Pose3(np.asarray(v["structure_T_camera"]))
-            motion = ViewMotion(float(v["turntable_rad"]), tuple(float(x) for x in v["stewart_pose"]))
+            motion = ViewMotion(float(v["turntable_rad"]), tuple(float(x) for x in v["stewart_pose"]),
+                                float(v.get("lift_m", 0.0)))
             self.last_views.append(self.slam.add_view(structure_T_camera, self.detections_from_json(v["detections"]),
                                                       motion=motion if self.rig is not None else None))
         self._measured[module] = self.slam.update(snapshot=self.model.module_by_name[module].tags, hold=True)

@@ -81,6 +81,21 @@ class RigCalibrationProcedure:
         self.survey_plan = plan if plan is not None else rig_survey.plan_rig_survey(
             lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable, (rig.turntable.min_rad, rig.turntable.max_rad),
             poses=rig_survey.SURVEY_POSES, angle_step_rad=step, order="poses")
+        if plan is None and rig.lift is not None:
+            # a bigger turntable's rim is seen from lower down (rig_survey.survey_lift)
+            from procedures.survey import CameraModel, SurveyPlanner
+
+            i = self.intrinsics
+            planner = SurveyPlanner(self.model, CameraModel(i.K, i.width_px, i.height_px, rig.stewart.world_T_base,
+                                                            rig.stewart.geometry.home_m, rig.camera.platform_T_camera),
+                                    lambda p: self.kinematics.inverse(p).reachable,
+                                    (rig.turntable.min_rad, rig.turntable.max_rad), lift_limits_m=(rig.lift.min_m, rig.lift.max_m))
+            lift = rig_survey.survey_lift(planner, self.survey_plan, planner.lift_limits_m)
+            if lift:
+                self.survey_plan = rig_survey.plan_rig_survey(
+                    lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable,
+                    (rig.turntable.min_rad, rig.turntable.max_rad), poses=rig_survey.SURVEY_POSES, angle_step_rad=step,
+                    order="poses", lift_m=lift)
         if not self.survey_plan.views:
             raise UserError(f"rig {rig.source}: no survey pose is inside the Stewart workspace at any turntable angle "
                             f"within [turntable] min_deg..max_deg")
@@ -144,11 +159,14 @@ class RigCalibrationProcedure:
             tt.ensure_homed(progress)
         with run.move("Stewart platform home") as progress:
             st.home(progress)
+        from procedures.setup import lift_to_zero
+
+        lift_to_zero(self.bench, run)           # the survey's views are at the lift's zero
         i = self.intrinsics
         run.recorder.log_calibration(topics.CAMERA_CALIBRATION, i.K, i.dist, i.width_px, i.height_px, "camera")
         run.recorder.log_json("rig_survey/plan", {
             "views": [{"turntable_rad": v.turntable_rad, "stewart_pose": list(v.stewart_pose)} for v in self.survey_plan.views],
-            "skipped": list(self.survey_plan.skipped)})
+            "skipped": list(self.survey_plan.skipped), "lift_m": self.survey_plan.lift_m})
         for s in self.survey_plan.skipped:
             run.recorder.log_text("info", f"rig survey: {s}")
         self.homed = True

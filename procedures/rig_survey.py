@@ -56,6 +56,7 @@ class RigSurveyPlan:
     views: tuple[ViewMotion, ...]
     skipped: tuple[str, ...] = ()      # candidate poses the workspace refused, said once
     order: str = "angles"              # "angles": every pose at one angle, then the next angle; "poses": the converse
+    lift_m: float = 0.0                # every view at this lift height (survey_lift)
 
 
 ORDERS = ("angles", "poses")
@@ -63,7 +64,7 @@ ORDERS = ("angles", "poses")
 
 def plan_rig_survey(reachable: Callable[[Sequence[float]], bool], turntable_limits_rad: tuple[float, float],
                     poses: Sequence[Sequence[float]] = SURVEY_POSES, angle_step_rad: float = ANGLE_STEP_RAD,
-                    order: str = "angles") -> RigSurveyPlan:
+                    order: str = "angles", lift_m: float = 0.0) -> RigSurveyPlan:
     """Every reachable survey pose at every turntable angle a full turn in `angle_step_rad` steps,
     within the limits.  `order="angles"`: all poses at one angle, then the next angle, the poses
     alternating direction (shorter moves); `order="poses"`: the turntable sweeps every angle at
@@ -83,12 +84,42 @@ def plan_rig_survey(reachable: Callable[[Sequence[float]], bool], turntable_limi
     if order == "angles":
         for i, a in enumerate(angles):
             for p in (ok if i % 2 == 0 else ok[::-1]):
-                views.append(ViewMotion(a, p))
+                views.append(ViewMotion(a, p, lift_m))
     else:
         for i, p in enumerate(ok):
             for a in (angles if i % 2 == 0 else angles[::-1]):
-                views.append(ViewMotion(a, p))
-    return RigSurveyPlan(tuple(views), skipped, order)
+                views.append(ViewMotion(a, p, lift_m))
+    return RigSurveyPlan(tuple(views), skipped, order, lift_m)
+
+
+def survey_lift(planner: Any, plan: RigSurveyPlan, lift_limits_m: tuple[float, float] | None) -> float:
+    """The lift height for the rig survey: the poses above were chosen for the rim tags of the 3x3x3
+    BORG's turntable seen from the lift's zero (two or three tags per view, 25 deg below the
+    camera).  A bigger turntable's rim comes closer and further below the camera: from a lower
+    height more views see two or more rim tags.  The height (on the planner's grid over the travel)
+    where most views see two or more, the nearest to 0 on a tie; if none does anywhere, the one
+    where most rim tags are seen at all.  0 without a lift.  `planner`: a procedures.survey
+    SurveyPlanner of the run's structure (it predicts visibility)."""
+    if lift_limits_m is None:
+        return 0.0
+    from procedures.survey import View
+
+    lo, hi = lift_limits_m
+    base = min(max(0.0, lo), hi)
+    step = planner.config.lift_step_m
+    grid = sorted({base, *(float(round(h, 6)) for h in np.arange(base, hi + 1e-9, step)),
+                   *(float(round(h, 6)) for h in np.arange(base, lo - 1e-9, -step))}, key=lambda h: (abs(h - base), h))
+    rim = list(planner.model.turntable.tag_ids)
+
+    def score(h: float) -> tuple[int, int]:
+        seen = [len(planner.visible(View(v.turntable_rad, tuple(v.stewart_pose), h), rim)) for v in plan.views]
+        return sum(n >= 2 for n in seen), sum(seen)
+    scores = {h: score(h) for h in grid}
+    best = max(s[0] for s in scores.values())
+    if best > 0:
+        return next(h for h in grid if scores[h][0] == best)
+    most = max(s[1] for s in scores.values())
+    return next(h for h in grid if scores[h][1] == most)
 
 
 def capture(bench: Any, run: Any, plan: RigSurveyPlan, detector: Any, *, seed: Sequence[int] = (),
@@ -105,6 +136,9 @@ def capture(bench: Any, run: Any, plan: RigSurveyPlan, detector: Any, *, seed: S
     devices = bench.devices
     tt, st, cam = devices.turntable, devices.stewart, devices.camera
     bench.moved.update({tt.name, st.name})
+    lift = getattr(devices, "lift", None)
+    if lift is None and any(v.lift_m for v in plan.views):
+        raise ValueError("the rig survey plan has views off the lift's zero and the rig has no lift")
 
     def process(k: int, view: ViewMotion, frame: Any) -> CalibrationView:
         if log_image is not None:
@@ -122,6 +156,13 @@ def capture(bench: Any, run: Any, plan: RigSurveyPlan, detector: Any, *, seed: S
         for k, view in enumerate(plan.views):
             # a device already where the view wants it is not commanded again: a move of zero still
             # costs its command, settling and polls (about 4 s of a 96-view survey at speed-up 10)
+            if lift is not None and (last is None or view.lift_m != last.lift_m):
+                # asked first after a resume: a lift already there is not commanded (a move of zero
+                # is still a move, and a lift that never moved is exactly where the rig file says)
+                if last is not None or abs(lift.position() - view.lift_m) > 1e-5:
+                    bench.moved.add(lift.name)
+                    with run.move(f"rig survey: lift to {view.lift_m * 1000:+.0f} mm") as progress:
+                        lift.move_to(view.lift_m, progress)
             if last is None or view.turntable_rad != last.turntable_rad:
                 with run.move(f"rig survey: turntable {math.degrees(view.turntable_rad):+.0f} deg") as progress:
                     tt.move_to(view.turntable_rad, progress)
@@ -145,12 +186,14 @@ def capture(bench: Any, run: Any, plan: RigSurveyPlan, detector: Any, *, seed: S
 
 def views_to_json(views: Sequence[CalibrationView]) -> list[dict[str, Any]]:
     return [{"turntable_rad": v.motion.turntable_rad, "stewart_pose": list(v.motion.stewart_pose),
+             "lift_m": v.motion.lift_m,
              "sightings": [{"id": s.tag_id, "corners_px": np.asarray(s.corners_px).tolist()} for s in v.sightings]}
             for v in views]
 
 
 def views_from_json(items: Sequence[dict[str, Any]]) -> list[CalibrationView]:
-    return [CalibrationView(ViewMotion(float(v["turntable_rad"]), tuple(float(x) for x in v["stewart_pose"])),
+    return [CalibrationView(ViewMotion(float(v["turntable_rad"]), tuple(float(x) for x in v["stewart_pose"]),
+                                       float(v.get("lift_m", 0.0))),
                             tuple(TagSighting(int(s["id"]), np.asarray(s["corners_px"], float)) for s in v["sightings"]))
             for v in items]
 

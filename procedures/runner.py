@@ -180,10 +180,15 @@ def dry_run(procedure: Procedure) -> int:
     """Check every planned move against limits and the workspace; move nothing."""
     steps = procedure.plan()
     problems = procedure.dry_run_problems(steps)
+    # what a run would go on with but should say (a procedure may have none)
+    warnings = getattr(procedure, "dry_run_warnings", lambda steps: [])(steps)
     print(f"dry run of {procedure.name}: {len(steps)} steps planned")
+    for w in warnings:
+        print(f"  WARNING: {w}")
     for p in problems:
         print(f"  REFUSED: {p}")
-    print("all planned moves are within limits" if not problems else f"{len(problems)} planned moves refused")
+    print("all planned moves are within limits" if not problems else
+          f"{len(problems)} problem{'s' if len(problems) > 1 else ''}: the run would be refused")
     return 0 if not problems else 2
 
 

@@ -64,6 +64,22 @@ class Bench:
 
 
 MAX_SPEEDUP = 1000.0
+LIFT_AT_ZERO_M = 1e-5     # the lift driver's arrival tolerance
+
+
+def lift_to_zero(bench: Bench, run: Any, always: bool = False) -> None:
+    """Put the lift, if the rig has one, at 0: where the rig file's Stewart base pose holds, which
+    every survey that does not ask for a height (the rig calibration, a 3x3x3 BORG) assumes.  A
+    lift already there is only asked where it is: a run that never needs it moves nothing.
+    `always`: send it home anyway (a run that will use it starts from a commanded 0, so a resumed
+    run's lift is in the state the uninterrupted run's was: the simulated carriage's error is
+    drawn per move)."""
+    lift = getattr(bench.devices, "lift", None)
+    if lift is None or (not always and abs(lift.position()) <= LIFT_AT_ZERO_M):
+        return
+    bench.moved.add(lift.name)
+    with run.move("lift to 0") as progress:
+        lift.home(progress)
 
 
 def check_speedup(speedup: float | None) -> None:
@@ -78,9 +94,10 @@ def check_speedup(speedup: float | None) -> None:
 
 
 def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *, simulate: bool | None = None,
-               speedup: float | None = None, only: list[str] | None = None) -> Bench:
+               speedup: float | None = None, only: list[str] | None = None, borg_n: int | None = None) -> Bench:
     """Load the rig and scenario; start the simulated bench if the rig has a [sim] table (or
-    `simulate` says so); connect drivers to the served URLs."""
+    `simulate` says so), with the BORG of size `borg_n` on its turntable (default the rig's [sim]
+    borg_n: the simulation is of the run's structure); connect drivers to the served URLs."""
     from drivers.devices import connect
 
     rig = load_rig(rig_path)
@@ -93,7 +110,7 @@ def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *,
     if use_sim:
         from sim_devices.bench import start_sim_bench
 
-        bench.sim = start_sim_bench(rig, scenario, speedup=speedup)  # arms the scenario's device faults
+        bench.sim = start_sim_bench(rig, scenario, speedup=speedup, borg_n=borg_n)  # arms the scenario's device faults
         rig = bench.sim.rig
         bench.rig = rig
     try:

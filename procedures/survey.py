@@ -11,6 +11,12 @@ view budget is spent.  `more_views` does the same during the run, starting from 
 covariance in the graph, when its verdict came out `uncertain`.  Visibility is predicted, not guaranteed: a tag is
 expected in a view when its four corners project into the image with a margin, it is large enough
 to decode, it faces the camera within `max_view_angle`, and no nearer tag's outline covers it.
+
+A rig with a lift (a vertical stage under the Stewart base) gives the candidates heights too: the
+planner picks the fewest heights, from a grid over the lift's travel, that see every module of the
+structure at its step (the base height first, so a structure the home height sees -- the 3x3x3
+BORG on the sim rig -- never moves the lift).  A tag no candidate view sees is reported in the
+step's `unobservable`, before anything moves.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import numpy as np
 
 from estimation.fiducials import tag_object_points
 from estimation.precision import covariance_from_information, module_sigma, view_information
-from lab.geometry import Pose3, from_xyzrpy
+from lab.geometry import Pose3, Rot3, from_xyzrpy
 from lab.structures.borg import BorgModel
 
 
@@ -31,12 +37,16 @@ from lab.structures.borg import BorgModel
 class View:
     turntable_rad: float
     stewart_pose: tuple[float, ...]   # (x, y, z, roll, pitch, yaw) of the platform relative to home
+    lift_m: float = 0.0               # the lift's height; 0 is where the rig file's Stewart base was measured
 
     @property
     def label(self) -> str:
         x, y, z, r, p, w = self.stewart_pose
+        # a view at the lift's zero reads as it did before there was a lift (the plans of runs that
+        # never move it, and their records, stay the same)
+        lift = f", lift {self.lift_m * 1000:+.0f} mm" if self.lift_m else ""
         return (f"turntable {np.degrees(self.turntable_rad):+.0f} deg, platform ({x * 1000:+.0f}, {y * 1000:+.0f}, "
-                f"{z * 1000:+.0f}) mm ({np.degrees(r):+.0f}, {np.degrees(p):+.0f}, {np.degrees(w):+.0f}) deg")
+                f"{z * 1000:+.0f}) mm ({np.degrees(r):+.0f}, {np.degrees(p):+.0f}, {np.degrees(w):+.0f}) deg{lift}")
 
 
 @dataclass(frozen=True)
@@ -59,6 +69,18 @@ class SurveyConfig:
     views_per_step: int = 3
     min_angle_separation_rad: float = np.radians(20.0)
     min_sightings: int = 2                # each new tag in at least this many views
+    # the grid the lift's heights are chosen from: a quarter of the camera's vertical field at the
+    # structure (43 deg at ~2 m is ~1.6 m), so one grid height lands near every layer's best view
+    lift_step_m: float = 0.25
+    # wider looks, for tags the views above cannot see from any height (the far corners of a face
+    # wider than the camera's field from the station: N >= 6 on the sim rig); used only then
+    wide_angle_offsets_rad: tuple[float, ...] = tuple(np.radians([-40.0, 40.0, -48.0, 48.0]))
+    wide_stewart_poses: tuple[tuple[float, ...], ...] = (
+        (0.0, 0.0, 0.0, 0.0, 0.0, np.radians(20.0)),
+        (0.0, 0.0, 0.0, 0.0, 0.0, np.radians(-20.0)),
+        (0.0, 0.0, 0.0, 0.0, np.radians(12.0), 0.0),
+        (0.0, 0.0, 0.0, 0.0, np.radians(-12.0), 0.0),
+    )
 
 
 @dataclass(frozen=True)
@@ -74,8 +96,12 @@ class CameraModel:
 
     def world_T_camera(self, view: View) -> Pose3:
         home = Pose3(from_xyzrpy([*self.home_m, 0, 0, 0]))
-        return self.world_T_stewart_base.compose(home).compose(from_xyzrpy(view.stewart_pose)).compose(
-            self.platform_T_camera)
+        base = self.world_T_stewart_base
+        if view.lift_m:
+            # the lift carries the Stewart base straight up (nominally: its true axis is calibrated
+            # in the graph, estimation/rig_model.py)
+            base = Pose3(Rot3(), np.array([0.0, 0.0, view.lift_m])).compose(base)
+        return base.compose(home).compose(from_xyzrpy(view.stewart_pose)).compose(self.platform_T_camera)
 
 
 @dataclass(frozen=True)
@@ -104,79 +130,227 @@ class SurveyPlan:
     predicted_sigma_m: float | None = None  # the module's position 1-sigma the views should give
 
 
+@dataclass(frozen=True)
+class _ViewGeometry:
+    """Every tag of the structure as one view would see it, tag by tag (index = position in
+    `SurveyPlanner._ids`): readable on its own (facing, in the image with the margin, big enough),
+    its mean depth and its image box.  Which of them a step has placed, and which of those a nearer
+    one covers, is decided per step (`SurveyPlanner.visible`)."""
+
+    ok: np.ndarray          # (T,) bool
+    depth: np.ndarray       # (T,) m
+    lo: np.ndarray          # (T, 2) px
+    hi: np.ndarray          # (T, 2) px
+
+
 class SurveyPlanner:
     def __init__(self, model: BorgModel, camera: CameraModel, reachable, turntable_limits_rad: tuple[float, float],
-                 config: SurveyConfig | None = None) -> None:
-        """`reachable(stewart_pose6) -> bool` is the Stewart workspace check (IK + limits)."""
+                 config: SurveyConfig | None = None, lift_limits_m: tuple[float, float] | None = None) -> None:
+        """`reachable(stewart_pose6) -> bool` is the Stewart workspace check (IK + limits).
+        `lift_limits_m`: the lift's travel (the rig's [lift] min_m, max_m), None without a lift."""
         self.model = model
         self.camera = camera
         self.config = config or SurveyConfig()
-        lo, hi = turntable_limits_rad
+        ids = sorted(model.tags)
+        self._ids = np.array(ids)
+        self._index = {t: i for i, t in enumerate(ids)}
+        self._geometry_cache: dict[View, _ViewGeometry] = {}
+        self._reachable = reachable
+        self._turntable_limits = turntable_limits_rad
+        c = self.config
+        self._standard = self._cross(c.angle_offsets_rad, c.stewart_poses)
+        if not self._standard:
+            raise ValueError("no candidate survey view is reachable with this rig")
+        self.lift_limits_m = lift_limits_m
+        self.view_sets = self._choose_view_sets()
+        self.lift_heights: tuple[float, ...] = tuple(sorted({h for h, _ in self.view_sets}))
+        candidates: dict[View, None] = {}
+        for h in self.lift_heights:
+            for v in (self._wide if (h, True) in self.view_sets else self._standard):
+                candidates[self._at(v, h)] = None
+        self.candidates = list(candidates)
+
+    def _cross(self, offsets: Sequence[float], poses: Sequence[Sequence[float]]) -> list[View]:
+        """Turntable angles (each face's centre plus `offsets`, within the limits) x reachable poses."""
+        lo, hi = self._turntable_limits
         views = []
         for face in range(4):
-            for off in self.config.angle_offsets_rad:
+            for off in offsets:
                 a = face * np.pi / 2 + off
                 if not lo <= a <= hi:
                     a = a - 2 * np.pi if lo <= a - 2 * np.pi <= hi else a
                 if not lo <= a <= hi:
                     continue
-                for sp in self.config.stewart_poses:
-                    if reachable(sp):
+                for sp in poses:
+                    if self._reachable(sp):
                         views.append(View(float(a), tuple(float(v) for v in sp)))
-        if not views:
-            raise ValueError("no candidate survey view is reachable with this rig")
-        self.candidates = views
+        return views
 
     @cached_property
-    def _tag_corners(self) -> dict[int, np.ndarray]:
-        out = {}
-        for t in self.model.tags.values():
+    def _wide(self) -> list[View]:
+        """The standard candidates, then the wider ones (further turns, platform yaw and pitch)."""
+        c = self.config
+        offsets = list(c.angle_offsets_rad) + [o for o in c.wide_angle_offsets_rad if o not in c.angle_offsets_rad]
+        poses = list(c.stewart_poses) + [p for p in c.wide_stewart_poses if p not in c.stewart_poses]
+        standard = set(self._standard)
+        extra = [v for v in self._cross(offsets, poses) if v not in standard]
+        return self._standard + extra
+
+    @staticmethod
+    def _at(view: View, lift_m: float) -> View:
+        return view if lift_m == 0.0 else View(view.turntable_rad, view.stewart_pose, lift_m)
+
+    @cached_property
+    def _tag_corners(self) -> np.ndarray:
+        """(T, 4, 3): each tag's corners in the structure frame."""
+        out = np.zeros((len(self._ids), 4, 3))
+        for i, tid in enumerate(self._ids):
+            t = self.model.tags[int(tid)]
             h = t.size_m / 2
             local = np.array([[-h, -h, 0, 1], [h, -h, 0, 1], [h, h, 0, 1], [-h, h, 0, 1]])
-            out[t.id] = (t.structure_T_tag.matrix() @ local.T).T[:, :3]
+            out[i] = (t.structure_T_tag.matrix() @ local.T).T[:, :3]
         return out
+
+    @cached_property
+    def _tag_frames(self) -> tuple[np.ndarray, np.ndarray]:
+        """(T, 3) centres and (T, 3) normals in the structure frame."""
+        poses = [self.model.tags[int(t)].structure_T_tag for t in self._ids]
+        return (np.array([p.translation() for p in poses]), np.array([p.rotation().matrix()[:, 2] for p in poses]))
 
     def structure_T_camera(self, view: View) -> Pose3:
         return self.model.world_T_structure(view.turntable_rad).inverse().compose(self.camera.world_T_camera(view))
 
-    def visible(self, view: View, present: Iterable[int]) -> list[int]:
-        """Tags of `present` predicted readable in `view`, nearest first."""
+    def _geometry(self, view: View) -> _ViewGeometry:
+        g = self._geometry_cache.get(view)
+        if g is not None:
+            return g
         c = self.config
         s_T_c = self.structure_T_camera(view)
         c_T_s = s_T_c.inverse().matrix()
-        cam_pos = s_T_c.translation()
-        K = self.camera.K
-        boxes = []
-        for tid in present:
-            spec = self.model.tags[tid]
-            normal = spec.structure_T_tag.rotation().matrix()[:, 2]
-            to_cam = cam_pos - spec.structure_T_tag.translation()
-            dist = float(np.linalg.norm(to_cam))
-            if dist > c.max_distance_m or np.dot(normal, to_cam) / dist < np.cos(c.max_view_angle_rad):
-                continue
-            pc = (c_T_s[:3, :3] @ self._tag_corners[tid].T).T + c_T_s[:3, 3]
-            if np.any(pc[:, 2] < 0.1):
-                continue
-            uv = (K @ (pc / pc[:, 2:3]).T).T[:, :2]
-            if (uv[:, 0].min() < c.margin_px or uv[:, 1].min() < c.margin_px
-                    or uv[:, 0].max() > self.camera.width_px - c.margin_px
-                    or uv[:, 1].max() > self.camera.height_px - c.margin_px):
-                continue
-            sides = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1)
-            if sides.min() < c.min_side_px:
-                continue
-            boxes.append((float(pc[:, 2].mean()), tid, uv.min(axis=0), uv.max(axis=0)))
-        boxes.sort()
-        seen: list[int] = []
-        kept: list[tuple[np.ndarray, np.ndarray]] = []
-        for _, tid, lo, hi in boxes:
-            area = float(np.prod(hi - lo))
-            covered = max((float(np.prod(np.clip(np.minimum(hi, h2) - np.maximum(lo, l2), 0, None))) for l2, h2 in kept),
-                          default=0.0)
-            kept.append((lo, hi))
-            if covered <= c.occlusion_overlap * area:
-                seen.append(tid)
-        return seen
+        centres, normals = self._tag_frames
+        to_cam = s_T_c.translation() - centres
+        dist = np.linalg.norm(to_cam, axis=1)
+        facing = (dist <= c.max_distance_m) & (np.einsum("ij,ij->i", normals, to_cam) / dist >= np.cos(c.max_view_angle_rad))
+        pc = self._tag_corners @ c_T_s[:3, :3].T + c_T_s[:3, 3]
+        front = np.all(pc[:, :, 2] >= 0.1, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (pc / pc[:, :, 2:3]) @ self.camera.K.T
+        uv = uv[:, :, :2]
+        lo, hi = uv.min(axis=1), uv.max(axis=1)
+        inside = ((lo[:, 0] >= c.margin_px) & (lo[:, 1] >= c.margin_px)
+                  & (hi[:, 0] <= self.camera.width_px - c.margin_px) & (hi[:, 1] <= self.camera.height_px - c.margin_px))
+        sides = np.linalg.norm(np.roll(uv, -1, axis=1) - uv, axis=2).min(axis=1)
+        ok = facing & front & inside & (sides >= c.min_side_px)
+        g = _ViewGeometry(ok, pc[:, :, 2].mean(axis=1), lo, hi)
+        self._geometry_cache[view] = g
+        return g
+
+    def visible(self, view: View, present: Iterable[int], among: Iterable[int] | None = None) -> list[int]:
+        """Tags of `present` predicted readable in `view`, nearest first (only those of `among`,
+        if given: the others still hide what is behind them)."""
+        g = self._geometry(view)
+        idx = np.array([self._index[t] for t in present], dtype=int)
+        idx = idx[g.ok[idx]] if len(idx) else idx
+        if not len(idx):
+            return []
+        # nearest first (ties by id); a tag is hidden when a nearer tag's box covers more than
+        # `occlusion_overlap` of its own (every nearer tag in the frame counts, hidden or not)
+        idx = idx[np.lexsort((self._ids[idx], g.depth[idx]))]
+        rows = np.arange(len(idx))
+        if among is not None:
+            wanted = set(among)
+            rows = rows[[int(self._ids[i]) in wanted for i in idx]]
+            if not len(rows):
+                return []
+        lo, hi = g.lo[idx], g.hi[idx]
+        area = np.prod(hi[rows] - lo[rows], axis=1)
+        inter = np.prod(np.clip(np.minimum(hi[rows, None], hi[None]) - np.maximum(lo[rows, None], lo[None]), 0, None),
+                        axis=2)
+        inter[np.arange(len(idx))[None, :] >= rows[:, None]] = 0.0     # only nearer ones (earlier) cover
+        covered = inter.max(axis=1)
+        return [int(t) for t in self._ids[idx[rows[covered <= self.config.occlusion_overlap * area]]]]
+
+    # ---- which views: heights and wider looks ------------------------------------------------------
+    def _choose_view_sets(self) -> tuple[tuple[float, bool], ...]:
+        """(lift height, wide) sets of candidate views: the fewest that see every module's tags at
+        the module's own step (with the tags placed so far in front of them).  First the standard
+        views at the base height (0, or the nearest end of the lift's travel); then, greedily, the
+        standard views at whichever grid height sees most of the tags still unseen (the nearer one
+        to the base on a tie); then, for what even those cannot see (the corners of a face wider
+        than the camera's field from the station), the wider views (further turns, platform yaw
+        and pitch) at whichever chosen or grid height sees most.  A structure the standard views
+        at the base see (the 3x3x3 BORG on the sim rig) gets exactly those.  Then the same two
+        passes for tags seen but not well (not twice from turntable angles `min_angle_separation`
+        apart).  The turntable's tags count as a first step (their relations to the base modules
+        tie the structure frame)."""
+        if self.lift_limits_m is None:
+            grid, base = [0.0], 0.0
+        else:
+            lo, hi = self.lift_limits_m
+            base = min(max(0.0, lo), hi)
+            step = self.config.lift_step_m
+            grid = sorted({base, *(float(round(h, 6)) for h in np.arange(base, hi + 1e-9, step)),
+                           *(float(round(h, 6)) for h in np.arange(base, lo - 1e-9, -step))})
+        # the turntable's tags first: they tie the structure frame to the rig (a run without a rig
+        # calibration has nothing else), and a turntable wider than the camera's field below the
+        # home height (N >= 4 on the sim rig) needs a lower look at them
+        present = set(self.model.turntable.tag_ids)
+        steps: list[tuple[str, list[int], set[int]]] = [("", list(self.model.turntable.tag_ids), present)]
+        for m in self.model.modules:
+            present = present | set(m.tags)
+            steps.append((m.name, list(m.tags), present))
+        need = {t for _, tags, _ in steps for t in tags}
+        cache: dict[tuple[float, bool], dict[int, list[float]]] = {}
+
+        def sightings(group: tuple[float, bool]) -> dict[int, list[float]]:
+            """Tag -> the turntable angles of the group's views that see it at its step."""
+            if group not in cache:
+                h, wide = group
+                views = [self._at(v, h) for v in (self._wide if wide else self._standard)]
+                out: dict[int, list[float]] = {}
+                for name, tags, placed in steps:
+                    idx = [self._index[t] for t in tags]
+                    for v in (self._facing(name, views) if name else views):
+                        if not self._geometry(v).ok[idx].any():
+                            continue
+                        for t in self.visible(v, placed, among=tags):
+                            out.setdefault(t, []).append(v.turntable_rad)
+                cache[group] = out
+            return cache[group]
+
+        def well(angles: list[float]) -> bool:
+            # as the coverage pass wants it: seen twice, from turntable angles far enough apart
+            # to triangulate its depth
+            return len(angles) >= self.config.min_sightings and \
+                max(angles) - min(angles) >= self.config.min_angle_separation_rad
+
+        chosen = [(base, False)]
+        angles: dict[int, list[float]] = {t: list(a) for t, a in sightings(chosen[0]).items()}
+        # seen at all: the standard views at other heights, then the wider ones
+        for wide in (False, True):
+            while need - set(angles):
+                rest = need - set(angles)
+                gains = {(h, wide): len(set(sightings((h, wide))) & rest) for h in grid if (h, wide) not in chosen}
+                best = max(gains, key=lambda g: (gains[g], -abs(g[0] - base)), default=None)
+                if best is None or gains[best] == 0:
+                    break
+                chosen.append(best)
+                for t, a in sightings(best).items():
+                    angles.setdefault(t, []).extend(a)
+        # then seen well (twice, far enough apart): a tag seen only from one turntable angle (the
+        # bracket of a top strut above the structure) gets a height, or a wider look, that does
+        for wide in (False, True):
+            while True:
+                weak = {t for t in need if t in angles and not well(angles[t])}
+                gains = {(h, wide): sum(1 for t in weak if well(angles[t] + sightings((h, wide)).get(t, [])))
+                         for h in grid if (h, wide) not in chosen}
+                best = max(gains, key=lambda g: (gains[g], -abs(g[0] - base)), default=None)
+                if best is None or gains[best] == 0:
+                    break
+                chosen.append(best)
+                for t, a in sightings(best).items():
+                    angles.setdefault(t, []).extend(a)
+        return tuple(chosen)
 
     def plan(self, module: str, placed_modules: Sequence[str], precision: PrecisionTarget | None = None) -> SurveyPlan:
         """Views for the step that placed `module`; `placed_modules` includes it."""
@@ -227,14 +401,14 @@ class SurveyPlanner:
         if not chosen:  # nothing sees the new tags: still look, from the face the module is on
             face = model.module_by_name[module].face
             chosen = [min(self.candidates, key=lambda v: (abs(v.turntable_rad - (face - 1) * np.pi / 2),
-                                                          np.abs(v.stewart_pose).sum()))]
+                                                          np.abs(v.stewart_pose).sum(), abs(v.lift_m)))]
         predicted = None
         if precision is not None:
             extra, predicted = self._accurate(module, [v for v in sight if v not in chosen], sight, precision,
                                               self._information(module, chosen, sight, precision),
                                               precision.max_views - len(chosen))
             chosen += extra
-        chosen.sort(key=lambda v: (v.turntable_rad, v.stewart_pose))
+        chosen.sort(key=_order)
         expected = [sight[v] if v in sight else self.visible(v, present) for v in chosen]
         seen_new = set().union(*map(set, expected)) if expected else set()
         return SurveyPlan(module, chosen, expected, [t for t in new if t not in seen_new], predicted)
@@ -249,17 +423,18 @@ class SurveyPlanner:
         sight = {v: self.visible(v, present) for v in self._facing(module) if v not in taken}
         info = np.zeros((6, 6)) if tag_covariance is None else np.linalg.inv(tag_covariance)
         views, predicted = self._accurate(module, list(sight), sight, precision, info, budget)
-        views.sort(key=lambda v: (v.turntable_rad, v.stewart_pose))
+        views.sort(key=_order)
         return SurveyPlan(module, views, [sight[v] for v in views], [], predicted)
 
     # ---- accuracy ------------------------------------------------------------------------------
-    def _facing(self, module: str) -> list[View]:
+    def _facing(self, module: str, candidates: Sequence[View] | None = None) -> list[View]:
         """Candidates that can see the module's face at all (the others only cost time to check)."""
+        candidates = self.candidates if candidates is None else candidates
         face = self.model.module_by_name[module].face
         if not 1 <= face <= 4:
-            return list(self.candidates)
+            return list(candidates)
         centre = (face - 1) * np.pi / 2
-        return [v for v in self.candidates
+        return [v for v in candidates
                 if abs((v.turntable_rad - centre + np.pi) % (2 * np.pi) - np.pi) <= np.radians(70.0)]
 
     def _verdict_tag(self, module: str) -> int:
@@ -301,6 +476,12 @@ class SurveyPlanner:
             chosen.append(best)
             sigma = self.predicted_sigma(module, info)
         return chosen, sigma
+
+
+def _order(v: View) -> tuple:
+    """A step's views by lift height, then turntable angle, then platform pose: the lift, the
+    slowest axis to settle with a platform on it, climbs once per step."""
+    return (v.lift_m, v.turntable_rad, v.stewart_pose)
 
 
 def _related(model: BorgModel, tag: int) -> list[int]:

@@ -22,6 +22,7 @@ from sim_devices.camera import camera_routes
 from sim_devices.faults import FaultInjector
 from sim_devices.http_server import HttpDeviceServer
 from sim_devices.ipjr import IpjrSerialSim, ipjr_routes
+from sim_devices.lift import LiftSim
 from sim_devices.line_server import LineDevice, LineServer
 from sim_devices.stewart import StewartSim
 from sim_devices.turntable import TurntableSim
@@ -105,14 +106,16 @@ def _endpoint(name: str, url: str, ephemeral: bool, http: bool) -> tuple[str, in
 
 
 def start_sim_bench(rig: Rig | None = None, scenario: Scenario | None = None, *, speedup: float | None = None,
-                    ephemeral_ports: bool = True, pty: bool = False, place_all: bool = False) -> SimBench:
+                    ephemeral_ports: bool = True, pty: bool = False, place_all: bool = False,
+                    borg_n: int | None = None) -> SimBench:
     """Start a simulator for every device of a simulated rig (default: the packaged sim rig).
 
     ephemeral_ports: listen on free ports (tests, procedures) instead of the rig's own (lab sim).
     pty: also serve each serial device on a pseudo-terminal.  place_all: start with every BORG
-    module placed (lab sim), instead of an empty turntable (a procedure places them)."""
+    module placed (lab sim), instead of an empty turntable (a procedure places them).  borg_n: the
+    size of the BORG on the turntable (default: the rig's [sim] borg_n)."""
     rig = rig or load_rig(None)
-    world = SimWorld(rig, scenario, speedup=speedup)
+    world = SimWorld(rig, scenario, speedup=speedup, borg_n=borg_n)
     bench = SimBench(rig, world)
     sim = rig.sim
     assert sim is not None
@@ -132,6 +135,9 @@ def start_sim_bench(rig: Rig | None = None, scenario: Scenario | None = None, *,
                 margin = sim.stewart["stroke_margin_mm"]
                 line_device = StewartSim(world.stewart_legs, g, g.leg_min_m * 1000 - margin, g.leg_max_m * 1000 + margin,
                                          name)
+            elif kind == "lift":
+                assert world.lift is not None
+                line_device = LiftSim(world.lift, sim.lift["min_mm"], sim.lift["max_mm"], name)
             elif kind == "ipjr" and not http:
                 line_device = IpjrSerialSim(world.ipjrs[name])
             if line_device is not None:

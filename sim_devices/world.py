@@ -1,14 +1,18 @@
 """The simulated world: the design structure plus what really happened, seeded.
 
 `SimWorld` holds every physical truth the device simulators act on and the camera sees:
-- the turntable axis (rad) and the Stewart platform's six legs (m), moved by their controllers;
+- the turntable axis (rad), the Stewart platform's six legs (m) and the lift's height (m), moved
+  by their controllers;
 - the true rig (`TrueRig`): the rig file plus the rig's errors (`lab/rig_error.py`: the rig's
   `[sim.rig_error]`, or the scenario's `[rig_error]`), which the software is never told -- the
   camera mount, the Stewart base, the turntable's rotation axis (offset and tilt), each turntable
-  tag's placement, the lens' focal length and principal point, and a fresh repeatability error of
-  the platform pose and of the turntable angle at every move;
-- the true camera pose, world_T_camera = world_T_base · base_T_platform(true legs) · repeatability
-  · platform_T_camera, all of them the true ones;
+  tag's placement, the lens' focal length and principal point, the lift's travel direction, and a
+  fresh repeatability error of the platform pose, of the turntable angle and of the lift's
+  carriage at every move;
+- the true camera pose, world_T_camera = lift(h) · world_T_base · base_T_platform(true legs) ·
+  repeatability · platform_T_camera, all of them the true ones; lift(h) moves the base h along the
+  lift's true (tilted) axis plus its repeatability error once the lift has moved (a lift that never
+  moved leaves the base where the rig file says, as the 3x3x3 runs have it);
 - the world frame is where the turntable plate sits at encoder zero, so the structure turns about
   the true axis: world_T_structure(a) = world_T_axis · Rz(a + repeatability) · axis_T_world ·
   world_T_structure_design(0);
@@ -47,7 +51,7 @@ from sim_devices.motion import Axis
 from sim_devices.stewart import platform_pose
 
 # Independent random streams (the k in default_rng([seed, k])).
-_STREAM_CAMERA, _STREAM_TT_TAGS, _STREAM_MOTION, _STREAM_IPJR = 1, 2, 3, 100
+_STREAM_CAMERA, _STREAM_TT_TAGS, _STREAM_MOTION, _STREAM_LIFT, _STREAM_IPJR = 1, 2, 3, 4, 100
 
 
 @dataclass(frozen=True)
@@ -57,6 +61,10 @@ class TrueRig:
     world_T_base: Pose3 | None
     platform_T_camera: Pose3 | None
     world_T_axis: Pose3              # the turntable's rotation axis is this frame's z axis
+    world_T_lift: Pose3 = Pose3()    # the lift travels along this frame's z axis
+
+    def lift_direction(self) -> np.ndarray:
+        return self.world_T_lift.rotation().matrix()[:, 2]
 
 
 def true_rig(rig: Rig, e: RigError) -> TrueRig:
@@ -71,7 +79,9 @@ def true_rig(rig: Rig, e: RigError) -> TrueRig:
         cam = _correction(n.translation(), e.camera_mount_offset_m, e.camera_mount_rotation_rad).compose(n)
     tx, ty = e.turntable_axis_tilt_rad
     dx, dy = e.turntable_axis_offset_m
-    return TrueRig(base, cam, Pose3(Rot3.RzRyRx(tx, ty, 0.0), np.array([dx, dy, 0.0])))
+    lx, ly = e.lift_axis_tilt_rad
+    return TrueRig(base, cam, Pose3(Rot3.RzRyRx(tx, ty, 0.0), np.array([dx, dy, 0.0])),
+                   Pose3(Rot3.RzRyRx(lx, ly, 0.0), np.zeros(3)))
 
 
 def _correction(about: np.ndarray, offset_m: Iterable[float], rotation_rad: Iterable[float]) -> Pose3:
@@ -211,7 +221,10 @@ class TrueCamera:
 
 
 class SimWorld:
-    def __init__(self, rig: Rig, scenario: Scenario | None = None, *, speedup: float | None = None) -> None:
+    def __init__(self, rig: Rig, scenario: Scenario | None = None, *, speedup: float | None = None,
+                 borg_n: int | None = None) -> None:
+        """`borg_n`: the size of the BORG this simulation is of (a run's `--n`); default the rig's
+        [sim] borg_n.  The world simulates the run's structure, whatever size the rig file names."""
         if rig.sim is None:
             raise UserError(f"rig {rig.name!r} has no [sim] table: it describes real hardware, not a simulation")
         self.rig = rig
@@ -230,6 +243,10 @@ class SimWorld:
         self._motion_rng = np.random.default_rng([self.seed, _STREAM_MOTION])
         self._tt_repeat: tuple[int, float] | None = None
         self._stewart_repeat: tuple[int, Pose3] | None = None
+        # the lift's own stream: a rig without one (or a run that never moves it) draws exactly the
+        # numbers it drew before the lift existed
+        self._lift_rng = np.random.default_rng([self.seed, _STREAM_LIFT])
+        self._lift_repeat: tuple[int, np.ndarray] | None = None
 
         # -- the turntable and the structure on it
         self.turntable: Axis | None = None
@@ -238,7 +255,12 @@ class SimWorld:
             self.turntable = Axis(0.0, math.radians(t["speed_deg_s"]) * self.speedup, t["settle_s"] / self.speedup)
         self.borg: BorgTruth | None = None
         if rig.turntable or rig.camera:
-            self.borg = BorgTruth(build_borg(sim.borg_n))
+            n = sim.borg_n if borg_n is None else borg_n
+            try:
+                model = build_borg(n)
+            except ValueError as exc:
+                raise UserError(str(exc)) from None
+            self.borg = BorgTruth(model)
             sig = self.rig_error.turntable_tag_sigma_m
             if sig > 0:
                 rng = np.random.default_rng([self.seed, _STREAM_TT_TAGS])
@@ -247,6 +269,12 @@ class SimWorld:
                     self.borg.set_tag_placement(tid, Pose3(Rot3.Expmap(rng.normal(0.0, rot_sig, 3)),
                                                            rng.normal(0.0, sig, 3)))
             self.borg.apply(self.scenario.borg_faults)
+
+        # -- the lift under the Stewart base: at 0 at power-up (an absolute encoder: no homing)
+        self.lift: Axis | None = None
+        if rig.lift:
+            lf = sim.lift
+            self.lift = Axis(0.0, lf["speed_mm_s"] / 1000.0 * self.speedup, lf["settle_s"] / self.speedup)
 
         # -- the Stewart platform
         self.stewart_legs: Axis | None = None
@@ -306,6 +334,19 @@ class SimWorld:
                                                      self._motion_rng.normal(0.0, e.stewart_repeatability_m, 3)))
             return self._stewart_repeat[1]
 
+    def lift_offset_m(self) -> np.ndarray:
+        """Where the lift has really carried the Stewart base from the rig file's pose: the height
+        along the true (tilted) axis, plus this move's repeatability error.  Zero for a lift that
+        has not moved since power-up."""
+        if self.lift is None or self.lift.moves == 0:
+            return np.zeros(3)
+        h = float(self.lift.position())
+        with self._lock:
+            moves = self.lift.moves
+            if self._lift_repeat is None or self._lift_repeat[0] != moves:
+                self._lift_repeat = (moves, self._lift_rng.normal(0.0, self.rig_error.lift_repeatability_m, 3))
+            return h * self.true_rig.lift_direction() + self._lift_repeat[1]
+
     def home_T_platform(self) -> Pose3:
         """The platform's true pose relative to home, from the true leg lengths."""
         if self.stewart_legs is None or self.rig.stewart is None:
@@ -328,6 +369,8 @@ class SimWorld:
         base_T_platform = Pose3(hp.rotation(), g.home_m + hp.translation()).compose(self._stewart_repeatability())
         world_T_base = self.true_rig.world_T_base
         assert world_T_base is not None
+        if self.lift is not None and self.lift.moves:
+            world_T_base = Pose3(Rot3(), self.lift_offset_m()).compose(world_T_base)
         return world_T_base.compose(base_T_platform).compose(platform_T_camera)
 
     def world_T_structure(self) -> Pose3:
@@ -361,7 +404,8 @@ class SimWorld:
             self._camera_rng = np.random.default_rng(seed)
             # this view's repeatability errors are drawn afresh from the same seed
             self._motion_rng = np.random.default_rng([*np.atleast_1d(seed).tolist(), _STREAM_MOTION])
-            self._tt_repeat = self._stewart_repeat = None
+            self._lift_rng = np.random.default_rng([*np.atleast_1d(seed).tolist(), _STREAM_LIFT])
+            self._tt_repeat = self._stewart_repeat = self._lift_repeat = None
 
     def render(self) -> np.ndarray:
         """The image the camera sees now (BGR uint8)."""

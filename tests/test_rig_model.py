@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from estimation.fiducials import tag_object_points
-from estimation.rig_model import (AXIS, BASE, INTRINSICS, MOUNT, RigGeometry, ViewMotion, cal3_s2, chain_factor,
+from estimation.rig_model import (AXIS, BASE, INTRINSICS, LIFT, MOUNT, RigGeometry, ViewMotion, cal3_s2, chain_factor,
                                   corner_factor)
 from lab.config import load_rig
 from lab.geometry import Pose3, Rot3
@@ -78,6 +78,51 @@ def test_chain_factor_jacobians_match_numerical_derivatives():
     for key, J in zip(f.keys(), analytic):
         assert J == pytest.approx(_numerical(f, v, key, 6), abs=2e-5)
     assert np.linalg.norm(f.unwhitenedError(v)) < 1e-3
+
+
+LIFT_TRUE = Pose3(Rot3.RzRyRx(0.004, -0.003, 0.0), np.zeros(3))     # a lift 4 mrad off vertical (exaggerated)
+
+
+def test_a_lifted_view_raises_the_stewart_base_along_the_lift_axis():
+    """lift(h) moves the base h along L's z axis and nothing else: by hand, the base's translation
+    plus h times the tilted axis; the prediction of an unlifted view is the four-key chain's."""
+    v = _values()
+    A, B, M = (v.atPose3(k) for k in (AXIS, BASE, MOUNT))
+    h = 1.25
+    motion = ViewMotion(0.4, (0.0, 0.03, 0.0, 0.0, 0.05, 0.0), h)
+    axis = LIFT_TRUE.rotation().matrix()[:, 2]
+    lifted_B = Pose3(B.rotation(), B.translation() + h * axis)
+    by_hand = GEOM.predict(ViewMotion(0.4, motion.stewart_pose), A, lifted_B, M)
+    assert GEOM.predict(motion, A, B, M, LIFT_TRUE).equals(by_hand, 1e-12)
+    flat = ViewMotion(0.4, motion.stewart_pose, 0.0)
+    assert GEOM.predict(flat, A, B, M, LIFT_TRUE).equals(GEOM.predict(flat, A, B, M), 0.0)
+    assert list(chain_factor(GEOM, flat, C).keys()) == [AXIS, BASE, MOUNT, C]      # no lift variable
+
+
+@pytest.mark.parametrize("h", [1.8, -0.4])
+def test_lifted_chain_factor_jacobians_match_numerical_derivatives(h):
+    motion = ViewMotion(2.1, (0.02, -0.01, 0.03, 0.05, -0.08, 0.1), h)
+    v = _values()
+    L = LIFT_TRUE.compose(Pose3.Expmap(np.array([0.001, -0.002, 0.003, 0.01, -0.02, 0.005])))
+    v.insert(LIFT, L)
+    cam = GEOM.predict(motion, *(v.atPose3(k) for k in (AXIS, BASE, MOUNT)), L).compose(
+        Pose3.Expmap(np.array([-1e-4, 2e-4, 1e-4, -3e-4, 1e-4, 2e-4])))
+    v.insert(C, cam)
+    f = chain_factor(GEOM, motion, C, gtsam.noiseModel.Unit.Create(6))
+    assert list(f.keys()) == [AXIS, BASE, MOUNT, C, LIFT]
+    for key, J in zip(f.keys(), _analytic(f, v)):
+        assert J == pytest.approx(_numerical(f, v, key, 6), abs=2e-5), gtsam.DefaultKeyFormatter(key)
+    assert np.linalg.norm(f.unwhitenedError(v)) < 1e-3
+    # the tilt is what the lift contributes: a tilt about x moves the camera along -y by ~h x tilt
+    J_lift = _analytic(f, v)[4]
+    assert np.abs(J_lift[:, :2]).max() > 0.5 * abs(h) and np.abs(J_lift[:, 3:]).max() < 1e-9
+
+
+def test_a_lifted_chain_adds_the_lifts_repeatability():
+    flat, lifted = ViewMotion(0.0, (0.0,) * 6), ViewMotion(0.0, (0.0,) * 6, 1.0)
+    d = GEOM.chain_noise(lifted).covariance() - GEOM.chain_noise(flat).covariance()
+    assert np.allclose(d[3:, 3:], np.eye(3) * GEOM.config.lift_repeatability_m ** 2, atol=1e-18)
+    assert np.allclose(d[:3, :], 0.0, atol=1e-18)
 
 
 def test_corner_factor_jacobians_match_numerical_derivatives_and_reproject_exactly():

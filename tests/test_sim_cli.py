@@ -16,7 +16,7 @@ from pathlib import Path
 from lab.cli import main
 from lab.config import default_rig_path
 
-DEFAULT_PORTS = (27101, 27102, 27103, 27111, 27112, 27113)
+DEFAULT_PORTS = (27101, 27102, 27103, 27104, 27111, 27112, 27113)
 
 
 def free_ports(n: int) -> list[int]:
@@ -61,9 +61,9 @@ def test_lab_sim_serves_every_device_until_ctrl_c(tmp_path):
                 break
         out = "".join(lines)
         urls = dict(re.findall(r"^\s+(\w+)\s+\w+\s+(\S+)", out, re.M))
-        assert set(urls) >= {"turntable", "stewart", "camera", "ipjr1", "ipjr2", "ipjr3"}, out
+        assert set(urls) >= {"turntable", "stewart", "lift", "camera", "ipjr1", "ipjr2", "ipjr3"}, out
         ptys = re.findall(r"pty (/dev/\S+)", out)
-        assert len(ptys) == 3                                   # turntable, stewart, ipjr3
+        assert len(ptys) == 4                                   # turntable, stewart, lift, ipjr3
         # a serial terminal's view of the turntable
         host, port = urls["turntable"].removeprefix("socket://").split(":")
         with socket.create_connection((host, int(port)), timeout=2) as s:
@@ -92,7 +92,8 @@ def test_devices_check_starts_the_simulators_when_nothing_answers(tmp_path, caps
     assert main(["devices", "check", "--rig", str(rig), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["simulator"] == "in-process"
-    assert [d["name"] for d in report["devices"]] == ["turntable", "stewart", "camera", "ipjr1", "ipjr2", "ipjr3"]
+    assert [d["name"] for d in report["devices"]] == ["turntable", "stewart", "lift", "camera", "ipjr1", "ipjr2",
+                                                      "ipjr3"]
     for d in report["devices"]:
         assert set(d) == {"name", "kind", "url", "ok", "detail"} and d["ok"], d
     assert "NOT homed" in report["devices"][0]["detail"]

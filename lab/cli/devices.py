@@ -25,6 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--speedup", type=float, help="run devices this many times faster than real (default: the rig's)")
     p.add_argument("--no-pty", action="store_true", help="do not also serve serial devices on pseudo-terminals")
     p.add_argument("--empty", action="store_true", help="start with no BORG module placed (default: all placed)")
+    p.add_argument("--n", type=int, default=None, help="BORG size on the turntable (default: the rig's [sim] borg_n)")
     p.add_argument("--duration", type=float, help=argparse.SUPPRESS)  # tests: stop after this many seconds
     p.set_defaults(func=_sim)
 
@@ -80,7 +81,7 @@ def _sim(args: argparse.Namespace) -> int:
     scenario = load_scenario(args.scenario) if args.scenario else None
     try:
         bench = start_sim_bench(rig, scenario, speedup=args.speedup, ephemeral_ports=False,
-                                pty=rig.sim.pty and not args.no_pty, place_all=not args.empty)
+                                pty=rig.sim.pty and not args.no_pty, place_all=not args.empty, borg_n=args.n)
     except OSError as exc:
         raise UserError(str(exc.strerror or exc)) from None
     stop = threading.Event()

@@ -55,6 +55,10 @@ def check_rig(path: str) -> RigReport:
         rep.devices.append({"device": s.name, "url": s.link.url,
                             "note": f"home legs {min(ik.legs_m) * 1000:.0f}..{max(ik.legs_m) * 1000:.0f} mm "
                                     f"(limits {s.geometry.leg_min_m * 1000:.0f}..{s.geometry.leg_max_m * 1000:.0f})"})
+    if rig.lift is not None:
+        lf = rig.lift
+        rep.devices.append({"device": lf.name, "url": lf.link.url,
+                            "note": f"travel {lf.min_m * 1000:.0f}..{lf.max_m * 1000:.0f} mm"})
     camera_ready = False
     if rig.camera is not None:
         c = rig.camera

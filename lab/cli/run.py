@@ -18,7 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     _common(b)
     b.add_argument("--on-flag", choices=("stop", "continue", "retry"), default="stop",
                    help="when a module is flagged: stop the run (default), continue, or ask for a re-deploy and re-measure")
-    b.add_argument("--n", type=int, default=None, help="BORG size (default: the rig's [sim] borg_n, else 3)")
+    b.add_argument("--n", type=int, default=None,
+                   help="BORG size, 2..8 (default: the rig's [sim] borg_n, else 3); a simulated rig simulates this size")
     b.add_argument("--modules", type=int, default=None, metavar="K",
                    help="assemble only the first K modules (a short run)")
     b.add_argument("--calibration", metavar="FILE",
@@ -39,6 +40,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--sigma-target-mm", type=float, default=None, metavar="MM",
                    help="plan each step's views until the new module's predicted position 1-sigma is this small "
                         "(default: the rig's [verification] sigma_target_mm, else 0.25)")
+    b.add_argument("--allow-unobservable", action="store_true",
+                   help="run even if the rig cannot see some modules (listed at the start; reported unverified) "
+                        "instead of refusing before anything moves")
     b.add_argument("--max-views", type=int, default=None, metavar="N",
                    help="view budget per step, extra views for an uncertain verdict included (default: the rig's "
                         "[verification] max_views, else 12)")
@@ -119,7 +123,15 @@ def _build(procedure: str, params: dict[str, Any]):
     """(procedure object, bench, structure name) from the CLI parameters."""
     from procedures.setup import open_bench
 
-    bench = open_bench(params.get("rig"), params.get("scenario"), speedup=params.get("speedup"))
+    n = params.get("n") if procedure == "borg" else None
+    if n is not None:
+        from lab.structures.borg import MAX_N
+
+        if not 2 <= n <= MAX_N:       # before the simulated bench is built for it
+            from lab.errors import UserError
+
+            raise UserError(f"--n {n}: the BORG size must be an integer from 2 to {MAX_N}")
+    bench = open_bench(params.get("rig"), params.get("scenario"), speedup=params.get("speedup"), borg_n=n)
     try:
         if procedure == "truss":
             from procedures.truss import TrussProcedure
@@ -134,7 +146,8 @@ def _build(procedure: str, params: dict[str, Any]):
                              rig_survey=False if params.get("no_rig_survey") else None,
                              observation=params.get("observation"), uncalibrated=bool(params.get("uncalibrated")),
                              tolerances=params.get("tolerance"), sigma_target_mm=params.get("sigma_target_mm"),
-                             max_views=params.get("max_views"))
+                             max_views=params.get("max_views"),
+                             allow_unobservable=bool(params.get("allow_unobservable")))
         return proc, bench, f"borg:{proc.model.n}"
     except BaseException:
         bench.close()
@@ -174,6 +187,8 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
                 return runner.dry_run(proc)
             finally:
                 proc.close()
+        if procedure == "borg":
+            _check_observable(proc)
         plan = None
         try:
             if resume_state is not None:
@@ -227,6 +242,20 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
         if lock is not None:
             lock.release()
             _remove_if_unused(run_dir, created)
+
+
+def _check_observable(proc: Any) -> None:
+    """Modules the rig cannot see: refused (one line each on stderr, then the error; nothing moved)
+    unless --allow-unobservable, when the run lists them as warnings at its start."""
+    from procedures.borg import UnobservableModules
+
+    try:
+        proc.check_observable()
+    except UnobservableModules as exc:
+        for line in exc.lines:
+            print(f"unobservable: {line}", file=sys.stderr)
+        proc.close()
+        raise
 
 
 def _close_live(view: Any, run_dir: Path) -> None:

@@ -110,6 +110,8 @@ def _operation(device: str, devs: Any, bench: Any) -> Callable[[], None]:
         return lambda: (devs.turntable.home(), devs.turntable.move_to(math.radians(40.0)))
     if device == "stewart":
         return lambda: devs.stewart.move_to([0.01, -0.01, 0.005, 0.02, 0.0, 0.03])
+    if device == "lift":
+        return lambda: (devs.lift.move_to(0.8), devs.lift.home())
     if device == "camera":
         return lambda: devs.camera.grab()
 
@@ -127,6 +129,8 @@ def _moving(bench: Any, device: str) -> bool:
         return bool(w.turntable.moving())
     if device == "stewart":
         return bool(w.stewart_legs.moving())
+    if device == "lift":
+        return bool(w.lift.moving())
     if device in w.ipjrs:
         return bool(w.ipjrs[device].moving())
     return False
@@ -520,6 +524,8 @@ def _position(bench: Any, device: str) -> Any:
         return float(w.turntable.position())
     if device == "stewart":
         return tuple(float(x) for x in w.stewart_legs.position())
+    if device == "lift":
+        return float(w.lift.position())
     return float(w.ipjrs[device].extension_m())
 
 

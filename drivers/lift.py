@@ -1,0 +1,145 @@
+"""Lift driver (docs/protocols.md §3a): the vertical stage under the Stewart base.
+
+Heights are metres here and millimetres on the wire, 0 being the height at which the rig file's
+Stewart base pose was measured.  The rig's soft limits (`[lift] min_m`, `max_m`) are checked
+before anything is sent; the device's travel, speed and settling time are read once with
+`LIMITS?` (a rig wider than the travel is refused) and give every move its timeout.  The stage has
+an absolute encoder: no homing; `home()` moves back to 0."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from drivers.errors import DeviceFault, MotionIncomplete, OutOfRange, ProtocolError, RigMismatch
+from drivers.motion import MotionPlan, Poll, Progress, link_drops, name_link_loss, sent_motion, wait_until_idle
+from drivers.transport import LineTransport
+from drivers.wire import parse_fields, parse_float
+from lab.comms import CommsSink, null_sink
+from lab.config import LiftConfig
+
+ARRIVAL_TOLERANCE_MM = 0.01
+
+
+@dataclass(frozen=True)
+class LiftStatus:
+    state: str            # IDLE, MOVING, FAULT
+    height_m: float
+    target_m: float
+    fault: str
+
+    @property
+    def moving(self) -> bool:
+        return self.state == "MOVING"
+
+
+@dataclass(frozen=True)
+class LiftHardware:
+    min_mm: float
+    max_mm: float
+    speed_mm_s: float
+    settle_s: float
+
+
+class Lift:
+    kind = "lift"
+
+    def __init__(self, config: LiftConfig, transport: LineTransport) -> None:
+        self.config = config
+        self.name = config.name
+        self.link = transport
+        self._hw: LiftHardware | None = None
+        self.moved = False      # a motion command has been sent by this driver (what a clean-up may stop)
+
+    @classmethod
+    def open(cls, config: LiftConfig, sink: CommsSink = null_sink) -> Lift:
+        link = config.link
+        return cls(config, LineTransport(config.name, link.url, sink, reply_timeout_s=link.reply_timeout_s,
+                                         retries=link.retries))
+
+    # -- queries ------------------------------------------------------------------------------
+    def identify(self) -> str:
+        ident = self.link.request("ID?")
+        if not ident.startswith("LIFT"):
+            raise ProtocolError(self.name, f"ID? says {ident!r}: this is not a lift (check the rig URL)")
+        return ident
+
+    def hardware(self) -> LiftHardware:
+        """The device's travel, speed and settling time (read once), checked against the rig."""
+        if self._hw is None:
+            req = "LIMITS?"
+            f = parse_fields(self.name, req, self.link.request(req), ("min_mm", "max_mm", "speed_mm_s", "settle_s"))
+            hw = LiftHardware(*(parse_float(self.name, req, f[k]) for k in ("min_mm", "max_mm", "speed_mm_s", "settle_s")))
+            lo, hi = self.config.min_m * 1000.0, self.config.max_m * 1000.0
+            if lo < hw.min_mm - 1e-9 or hi > hw.max_mm + 1e-9:
+                raise RigMismatch(self.name, f"rig limits [{lo:g}, {hi:g}] mm exceed the hardware travel "
+                                             f"[{hw.min_mm:g}, {hw.max_mm:g}] mm: fix [lift] min_m/max_m")
+            if hw.speed_mm_s <= 0:
+                raise ProtocolError(self.name, f"LIMITS? reports speed {hw.speed_mm_s} mm/s")
+            self._hw = hw
+        return self._hw
+
+    def status(self) -> LiftStatus:
+        req = "STATUS?"
+        f = parse_fields(self.name, req, self.link.request(req), ("state", "pos_mm", "target_mm", "fault"))
+        return LiftStatus(f["state"], parse_float(self.name, req, f["pos_mm"]) / 1000.0,
+                          parse_float(self.name, req, f["target_mm"]) / 1000.0, f["fault"])
+
+    def position(self) -> float:
+        """Current height, m."""
+        return parse_float(self.name, "POS?", self.link.request("POS?")) / 1000.0
+
+    @property
+    def limits_m(self) -> tuple[float, float]:
+        return self.config.min_m, self.config.max_m
+
+    def check_height(self, height_m: float) -> None:
+        """Refuse a height outside the rig's limits (no I/O: usable for --dry-run)."""
+        lo, hi = self.limits_m
+        if not math.isfinite(height_m) or not lo - 1e-12 <= height_m <= hi + 1e-12:
+            raise OutOfRange(self.name, "lift height", height_m, (lo, hi), "m", "rig [lift] min_m/max_m")
+
+    # -- motion -------------------------------------------------------------------------------
+    def stop(self) -> None:
+        self.link.request("STOP", idempotent=True)
+
+    def clear(self) -> None:
+        self.link.request("CLEAR", idempotent=True)
+
+    def move_to(self, height_m: float, progress: Progress | None = None) -> float:
+        """Move to an absolute height (m) and wait until settled; returns the reached height."""
+        self.check_height(height_m)
+        return self._move(f"MOVE {height_m * 1000.0:.3f}", round(height_m * 1000.0, 3), progress)
+
+    def home(self, progress: Progress | None = None) -> float:
+        """Back to height 0 (where the rig file's Stewart base pose holds)."""
+        return self._move("HOME", 0.0, progress)
+
+    def _move(self, line: str, target_mm: float, progress: Progress | None) -> float:
+        hw = self.hardware()
+        start_mm = self.status().height_m * 1000.0
+        plan = MotionPlan.of(f"to {target_mm:.3f} mm", target_mm - start_mm, hw.speed_mm_s, hw.settle_s,
+                             self.config.link.margin_s, self.name)
+        drops = link_drops(self.link)
+        sent_motion(self, lambda: self.link.request(line, idempotent=False), self.stop)
+        span = abs(target_mm - start_mm) or 1.0
+        holder: list[LiftStatus] = []
+
+        def poll() -> Poll:
+            st = self.status()
+            holder.append(st)
+            pos = st.height_m * 1000.0
+            if st.state == "FAULT":
+                raise DeviceFault(self.name, 40, f"fault {st.fault} at {pos:.3f} mm", plan.description)
+            return Poll(st.moving, 1.0 - abs(target_mm - pos) / span, f"at {pos:.3f} mm")
+
+        wait_until_idle(self.name, plan, poll, self.stop, progress)
+        reached = holder[-1].height_m * 1000.0
+        if abs(reached - target_mm) > ARRIVAL_TOLERANCE_MM:
+            raise name_link_loss(MotionIncomplete(
+                self.name, f"stopped at {reached:.3f} mm, short of the target {target_mm:.3f} mm "
+                           f"(state {holder[-1].state}, fault {holder[-1].fault})"), self.link, drops)
+        return reached / 1000.0
+
+    def close(self) -> None:
+        self.link.close()
