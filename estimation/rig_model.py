@@ -272,16 +272,9 @@ OBLIQUE_EXPONENT = 2.0
 
 def side_ratio(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> float:
     """Shortest over longest side of a tag's undistorted quadrilateral: ~cos(incidence)."""
-    return quad_side_ratio(undistort_px(np.asarray(corners_px, float), K, dist))
-
-
-def quad_side_ratio(undistorted_px: np.ndarray) -> float:
-    """`side_ratio` of corners already undistorted (the graph undistorts each sighting once)."""
-    u = undistorted_px
-    d = u[[1, 2, 3, 0]] - u
-    sides = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2)
-    longest = sides.max()
-    return float(sides.min() / longest) if longest > 0 else 0.0
+    u = undistort_px(np.asarray(corners_px, float), K, dist)
+    sides = np.linalg.norm(np.roll(u, -1, axis=0) - u, axis=1)
+    return float(sides.min() / sides.max()) if sides.max() > 0 else 0.0
 
 
 def tag_prior_noise(sigma_m: float, size_m: float) -> gtsam.noiseModel.Base:
