@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -326,30 +326,34 @@ class SurveyPlanner:
 
         chosen = [(base, False)]
         angles: dict[int, list[float]] = {t: list(a) for t, a in sightings(chosen[0]).items()}
+
+        def grow(gain_now: Callable[[], Callable[[tuple[float, bool]], int]]) -> None:
+            """Greedily add the standard heights, then the wider looks, while one gains something;
+            `gain_now()` gives the gain of a candidate given what is chosen so far."""
+            for wide in (False, True):
+                while True:
+                    gain = gain_now()
+                    gains = {(h, wide): gain((h, wide)) for h in grid if (h, wide) not in chosen}
+                    best = max(gains, key=lambda g: (gains[g], -abs(g[0] - base)), default=None)
+                    if best is None or gains[best] == 0:
+                        break
+                    chosen.append(best)
+                    for t, a in sightings(best).items():
+                        angles.setdefault(t, []).extend(a)
+
+        def unseen() -> Callable[[tuple[float, bool]], int]:
+            rest = need - set(angles)
+            return lambda g: len(set(sightings(g)) & rest)
+
+        def seen_once() -> Callable[[tuple[float, bool]], int]:
+            weak = {t for t in need if t in angles and not well(angles[t])}
+            return lambda g: sum(1 for t in weak if well(angles[t] + sightings(g).get(t, [])))
+
         # seen at all: the standard views at other heights, then the wider ones
-        for wide in (False, True):
-            while need - set(angles):
-                rest = need - set(angles)
-                gains = {(h, wide): len(set(sightings((h, wide))) & rest) for h in grid if (h, wide) not in chosen}
-                best = max(gains, key=lambda g: (gains[g], -abs(g[0] - base)), default=None)
-                if best is None or gains[best] == 0:
-                    break
-                chosen.append(best)
-                for t, a in sightings(best).items():
-                    angles.setdefault(t, []).extend(a)
+        grow(unseen)
         # then seen well (twice, far enough apart): a tag seen only from one turntable angle (the
         # bracket of a top strut above the structure) gets a height, or a wider look, that does
-        for wide in (False, True):
-            while True:
-                weak = {t for t in need if t in angles and not well(angles[t])}
-                gains = {(h, wide): sum(1 for t in weak if well(angles[t] + sightings((h, wide)).get(t, [])))
-                         for h in grid if (h, wide) not in chosen}
-                best = max(gains, key=lambda g: (gains[g], -abs(g[0] - base)), default=None)
-                if best is None or gains[best] == 0:
-                    break
-                chosen.append(best)
-                for t, a in sightings(best).items():
-                    angles.setdefault(t, []).extend(a)
+        grow(seen_once)
         return tuple(chosen)
 
     def plan(self, module: str, placed_modules: Sequence[str], precision: PrecisionTarget | None = None) -> SurveyPlan:
