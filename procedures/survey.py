@@ -327,12 +327,15 @@ class SurveyPlanner:
         chosen = [(base, False)]
         angles: dict[int, list[float]] = {t: list(a) for t, a in sightings(chosen[0]).items()}
 
-        def grow(gain_now: Callable[[], Callable[[tuple[float, bool]], int]]) -> None:
+        def grow(gain_now: Callable[[], Callable[[tuple[float, bool]], int] | None]) -> None:
             """Greedily add the standard heights, then the wider looks, while one gains something;
-            `gain_now()` gives the gain of a candidate given what is chosen so far."""
+            `gain_now()` gives the gain of a candidate given what is chosen so far, or None when
+            nothing is left to gain (no candidate is then rendered: most structures stop here)."""
             for wide in (False, True):
                 while True:
                     gain = gain_now()
+                    if gain is None:
+                        return
                     gains = {(h, wide): gain((h, wide)) for h in grid if (h, wide) not in chosen}
                     best = max(gains, key=lambda g: (gains[g], -abs(g[0] - base)), default=None)
                     if best is None or gains[best] == 0:
@@ -341,12 +344,14 @@ class SurveyPlanner:
                     for t, a in sightings(best).items():
                         angles.setdefault(t, []).extend(a)
 
-        def unseen() -> Callable[[tuple[float, bool]], int]:
+        def unseen() -> Callable[[tuple[float, bool]], int] | None:
             rest = need - set(angles)
-            return lambda g: len(set(sightings(g)) & rest)
+            return (lambda g: len(set(sightings(g)) & rest)) if rest else None
 
-        def seen_once() -> Callable[[tuple[float, bool]], int]:
+        def seen_once() -> Callable[[tuple[float, bool]], int] | None:
             weak = {t for t in need if t in angles and not well(angles[t])}
+            if not weak:
+                return None
             return lambda g: sum(1 for t in weak if well(angles[t] + sightings(g).get(t, [])))
 
         # seen at all: the standard views at other heights, then the wider ones
