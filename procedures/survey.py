@@ -33,6 +33,17 @@ from lab.geometry import Pose3, Rot3, from_xyzrpy
 from lab.structures.borg import BorgModel
 
 
+def unoccluded(lo: np.ndarray, hi: np.ndarray, rows: np.ndarray, overlap: float) -> np.ndarray:
+    """Which of `rows` no nearer tag hides: (N, 2) image boxes `lo`..`hi` sorted nearest first; a
+    tag is hidden when one nearer tag's box covers more than `overlap` of its own (every nearer tag
+    in the frame counts, hidden or not).  Boolean mask over `rows`."""
+    area = np.prod(hi[rows] - lo[rows], axis=1)
+    inter = np.prod(np.clip(np.minimum(hi[rows, None], hi[None]) - np.maximum(lo[rows, None], lo[None]), 0, None),
+                    axis=2)
+    inter[np.arange(len(lo))[None, :] >= rows[:, None]] = 0.0     # only nearer ones (earlier) cover
+    return inter.max(axis=1, initial=0.0) <= overlap * area
+
+
 @dataclass(frozen=True)
 class View:
     turntable_rad: float
@@ -262,13 +273,8 @@ class SurveyPlanner:
             rows = rows[[int(self._ids[i]) in wanted for i in idx]]
             if not len(rows):
                 return []
-        lo, hi = g.lo[idx], g.hi[idx]
-        area = np.prod(hi[rows] - lo[rows], axis=1)
-        inter = np.prod(np.clip(np.minimum(hi[rows, None], hi[None]) - np.maximum(lo[rows, None], lo[None]), 0, None),
-                        axis=2)
-        inter[np.arange(len(idx))[None, :] >= rows[:, None]] = 0.0     # only nearer ones (earlier) cover
-        covered = inter.max(axis=1)
-        return [int(t) for t in self._ids[idx[rows[covered <= self.config.occlusion_overlap * area]]]]
+        keep = unoccluded(g.lo[idx], g.hi[idx], rows, self.config.occlusion_overlap)
+        return [int(t) for t in self._ids[idx[rows[keep]]]]
 
     # ---- which views: heights and wider looks ------------------------------------------------------
     def _choose_view_sets(self) -> tuple[tuple[float, bool], ...]:

@@ -174,3 +174,44 @@ def test_lab_bench_slam_is_on_the_command_line():
     bad = subprocess.run([sys.executable, "-m", "lab", "bench", "slam", "--trials", "0", "--out", "/tmp/lab-test-slam"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--trials must be at least 1" in bad.stderr
+
+
+def test_a_tag_behind_a_nearer_one_is_hidden_and_one_beside_it_is_not():
+    from procedures.survey import unoccluded
+
+    # nearest first: a near tag, one mostly behind it, one beside it, one just touched at its edge
+    lo = np.array([[100.0, 100.0], [110.0, 105.0], [300.0, 100.0], [190.0, 100.0]])
+    hi = lo + 100.0
+    keep = unoccluded(lo, hi, np.arange(4), 0.25)
+    assert keep.tolist() == [True, False, True, True]
+    # the same boxes with the depths reversed: now the second hides the first, never the other way
+    assert unoccluded(lo[::-1], hi[::-1], np.arange(4), 0.25).tolist() == [True, True, True, False]
+    # only the rows asked about are judged, but every nearer tag still covers them
+    assert unoccluded(lo, hi, np.array([1, 2]), 0.25).tolist() == [False, True]
+
+
+def test_the_scaling_study_sees_a_structure_as_the_rendered_camera_does():
+    """Occlusion on: a view of the 4x4x4 reads fewer tags than a camera that sees through it, and
+    the study's rows carry what the growth is fitted on."""
+    from procedures.studies import bench_scaling
+    from procedures.studies.bench_precision import PrecisionSetup, _sight
+
+    model = build_borg(4)
+    truth = ss.true_tag_poses(model, ss.StructureFaults(), list(model.tags))
+    setup = PrecisionSetup()
+    tags = [t for m in [model.turntable, *model.modules[:20]] for t in (m.tag_ids if m is model.turntable else m.tags)]
+    # the third view of the 20th module: two far tags behind nearer ones
+    cam = bench_scaling._cameras(model, model.modules[19])[2]
+    through = _sight(np.random.default_rng(0), ss.SIM_K, cam, cam, truth, tags, model, setup)
+    hidden = _sight(np.random.default_rng(0), ss.SIM_K, cam, cam, truth, tags, model, setup, bench_scaling.OCCLUSION)
+    lost = {d.tag_id for d in through} - {d.tag_id for d in hidden}
+    assert len(lost) == 2 and {d.tag_id for d in hidden} < {d.tag_id for d in through}
+    depth = {d.tag_id: d.camera_T_tag.translation()[2] for d in through}
+    assert min(depth[t] for t in lost) > min(depth.values())
+    res = bench_scaling.study(sizes=(3, 4), observations=("corner-info",))
+    rows = res["rows"]["corner-info"]
+    assert [r["n"] for r in rows] == [3, 4] and rows[0]["tags"] < rows[1]["tags"]
+    assert all(r["batch_ms"] > 0 and 1 < r["sightings_per_view"] < 30 for r in rows)
+    g = res["growth"]["corner-info"]
+    assert g["batch_ms"] is not None and g["batch_vs_factors"] is not None
+    assert any("batch ∝ factors^" in line for line in bench_scaling.markdown(res))

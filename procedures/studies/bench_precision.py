@@ -56,20 +56,32 @@ def _pool(model, face: int) -> list:
             for da in (-30, -24, -18, -12, -6, 0, 6, 12, 18, 24, 30) for p in (-8.0, 0.0, 8.0)]
 
 
-def _sight(rng, K, cam_true, cam_reported, truth, tags, model, setup: PrecisionSetup):
-    """Detections (drawn corners) of the `tags` visible from the true camera."""
+def _sight(rng, K, cam_true, cam_reported, truth, tags, model, setup: PrecisionSetup,
+           occlusion_overlap: float | None = None):
+    """Detections (drawn corners) of the `tags` visible from the true camera.  With
+    `occlusion_overlap`, a tag a nearer one hides (the survey planner's rule, `survey.unoccluded`)
+    is not seen; without it the camera sees through the structure."""
     from procedures.studies import slam_sim as ss
+    from procedures.survey import unoccluded
     from estimation.fiducials import Detection, tag_object_points
     from estimation.rig_model import MIN_SIDE_RATIO, OBLIQUE_EXPONENT
 
-    out = []
+    seen = []
     for tid in tags:
         size = model.tags[tid].size_m
         if not ss.visible(cam_true, truth[tid], size):
             continue
         c_T_t = cam_true.between(truth[tid])
         pts = (c_T_t.rotation().matrix() @ tag_object_points(size).T).T + c_T_t.translation()
-        uv = (K @ (pts / pts[:, 2:3]).T).T[:, :2]
+        seen.append((float(pts[:, 2].mean()), tid, (K @ (pts / pts[:, 2:3]).T).T[:, :2]))
+    if occlusion_overlap is not None and seen:
+        seen.sort(key=lambda s: (s[0], s[1]))
+        uv_all = np.array([s[2] for s in seen])
+        keep = unoccluded(uv_all.min(axis=1), uv_all.max(axis=1), np.arange(len(seen)), occlusion_overlap)
+        seen = [s for s, k in zip(seen, keep) if k]
+    out = []
+    for _, tid, uv in seen:
+        size = model.tags[tid].size_m
         sides = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1)
         ratio = sides.min() / sides.max()
         if ratio < MIN_SIDE_RATIO:
