@@ -1,7 +1,7 @@
 """`lab bench slam --only scaling`: how SF-GraphSLAM's cost grows with the structure, N = 3..8.
 
 Each size is assembled module by module as a run measures it (three views per module, around its
-face, 2.2 m out; corners drawn at their true projection plus 0.08 px noise, grown with obliquity;
+face, 2.2 m out; corners drawn at their true projection plus 0.01 px noise, grown with obliquity;
 the camera pose known to 0.1 mm / 0.005 deg), with semantic factors deciding as they become
 decidable.  A tag a nearer tag hides is not seen (the survey planner's rule, `survey.unoccluded`;
 the rendered camera hides it by painting the nearer tag over it).  Struts hide nothing (as in the
