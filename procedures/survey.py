@@ -336,7 +336,7 @@ class SurveyPlanner:
         def grow(gain_now: Callable[[], Callable[[tuple[float, bool]], int] | None]) -> None:
             """Greedily add the standard heights, then the wider looks, while one gains something;
             `gain_now()` gives the gain of a candidate given what is chosen so far, or None when
-            nothing is left to gain (no candidate is then rendered: most structures stop here)."""
+            nothing is left to gain (no candidate height is then evaluated: most structures stop here)."""
             for wide in (False, True):
                 while True:
                     gain = gain_now()
