@@ -11,8 +11,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from drivers.errors import DeviceFault, MotionIncomplete, OutOfRange, ProtocolError, RigMismatch
-from drivers.motion import MotionPlan, Poll, Progress, link_drops, name_link_loss, sent_motion, wait_until_idle
+from drivers.errors import MotionIncomplete, OutOfRange, ProtocolError
+from drivers.motion import MotionPlan, Progress, link_drops, name_link_loss, read_limits, sent_motion, wait_for_axis
 from drivers.transport import LineTransport
 from drivers.wire import parse_fields, parse_float
 from lab.comms import CommsSink, null_sink
@@ -67,16 +67,9 @@ class Lift:
     def hardware(self) -> LiftHardware:
         """The device's travel, speed and settling time (read once), checked against the rig."""
         if self._hw is None:
-            req = "LIMITS?"
-            f = parse_fields(self.name, req, self.link.request(req), ("min_mm", "max_mm", "speed_mm_s", "settle_s"))
-            hw = LiftHardware(*(parse_float(self.name, req, f[k]) for k in ("min_mm", "max_mm", "speed_mm_s", "settle_s")))
-            lo, hi = self.config.min_m * 1000.0, self.config.max_m * 1000.0
-            if lo < hw.min_mm - 1e-9 or hi > hw.max_mm + 1e-9:
-                raise RigMismatch(self.name, f"rig limits [{lo:g}, {hi:g}] mm exceed the hardware travel "
-                                             f"[{hw.min_mm:g}, {hw.max_mm:g}] mm: fix [lift] min_m/max_m")
-            if hw.speed_mm_s <= 0:
-                raise ProtocolError(self.name, f"LIMITS? reports speed {hw.speed_mm_s} mm/s")
-            self._hw = hw
+            self._hw = LiftHardware(*read_limits(
+                self.name, self.link.request, ("min_mm", "max_mm", "speed_mm_s", "settle_s"),
+                (self.config.min_m * 1000.0, self.config.max_m * 1000.0), "mm", "[lift] min_m/max_m"))
         return self._hw
 
     def status(self) -> LiftStatus:
@@ -122,23 +115,13 @@ class Lift:
                              self.config.link.margin_s, self.name)
         drops = link_drops(self.link)
         sent_motion(self, lambda: self.link.request(line, idempotent=False), self.stop)
-        span = abs(target_mm - start_mm) or 1.0
-        holder: list[LiftStatus] = []
-
-        def poll() -> Poll:
-            st = self.status()
-            holder.append(st)
-            pos = st.height_m * 1000.0
-            if st.state == "FAULT":
-                raise DeviceFault(self.name, 40, f"fault {st.fault} at {pos:.3f} mm", plan.description)
-            return Poll(st.moving, 1.0 - abs(target_mm - pos) / span, f"at {pos:.3f} mm")
-
-        wait_until_idle(self.name, plan, poll, self.stop, progress)
-        reached = holder[-1].height_m * 1000.0
+        final = wait_for_axis(self.name, plan, self.status, lambda st: st.height_m * 1000.0, target_mm, start_mm,
+                              "mm", self.stop, progress)
+        reached = final.height_m * 1000.0
         if abs(reached - target_mm) > ARRIVAL_TOLERANCE_MM:
             raise name_link_loss(MotionIncomplete(
                 self.name, f"stopped at {reached:.3f} mm, short of the target {target_mm:.3f} mm "
-                           f"(state {holder[-1].state}, fault {holder[-1].fault})"), self.link, drops)
+                           f"(state {final.state}, fault {final.fault})"), self.link, drops)
         return reached / 1000.0
 
     def close(self) -> None:

@@ -1,15 +1,19 @@
 """Waiting for a motion, the same way for every device: poll until idle, with a deadline from the
 physics, and stop the device on every way out that is not success (timeout, link error, Ctrl-C).
-Bluesky's invariant, small: whatever happens, what moved is stopped and the error says so."""
+Bluesky's invariant, small: whatever happens, what moved is stopped and the error says so.
+Also what the single-axis controllers (turntable, lift; the Stewart's legs for `LIMITS?`) share:
+their hardware limits read and checked against the rig, and their wait."""
 
 from __future__ import annotations
 
 import math
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Protocol, TypeVar
 
-from drivers.errors import DeviceError, DeviceFault, DeviceTimeout, Disconnected, MotionIncomplete, OutOfRange
+from drivers.errors import (DeviceError, DeviceFault, DeviceTimeout, Disconnected, MotionIncomplete, OutOfRange,
+                            ProtocolError, RigMismatch)
+from drivers.wire import parse_fields, parse_float
 
 Progress = Callable[[float], None]   # fraction done, 0..1
 
@@ -133,3 +137,54 @@ def wait_until_idle(device: str, plan: MotionPlan, poll: Callable[[], Poll], sto
     except (DeviceError, KeyboardInterrupt) as exc:
         annotate(exc, f"while moving {plan.description}: " + stop_quietly(device, stop))
         raise
+
+
+def read_limits(device: str, request: Callable[[str], str], keys: tuple[str, str, str, str],
+                rig_range: tuple[float, float], unit: str, fix: str, *, rig: str = "rig limits",
+                travel: str = "travel") -> tuple[float, float, float, float]:
+    """A controller's `LIMITS?` (min, max, speed per s, settle s; wire units, named by `keys`),
+    checked against the rig's soft limits `rig_range` (the same units): a rig wider than the
+    hardware's travel is a RigMismatch naming the rig keys to `fix`, a speed <= 0 a ProtocolError."""
+    req = "LIMITS?"
+    f = parse_fields(device, req, request(req), keys)
+    lo_hw, hi_hw, speed, settle = (parse_float(device, req, f[k]) for k in keys)
+    lo, hi = rig_range
+    if lo < lo_hw - 1e-9 or hi > hi_hw + 1e-9:
+        raise RigMismatch(device, f"{rig} [{lo:g}, {hi:g}] {unit} exceed the hardware {travel} "
+                                  f"[{lo_hw:g}, {hi_hw:g}] {unit}: fix {fix}")
+    if speed <= 0:
+        raise ProtocolError(device, f"LIMITS? reports speed {speed} {unit}/s")
+    return lo_hw, hi_hw, speed, settle
+
+
+class AxisStatus(Protocol):
+    @property
+    def state(self) -> str: ...
+    @property
+    def fault(self) -> str: ...
+    @property
+    def moving(self) -> bool: ...
+
+
+S = TypeVar("S", bound=AxisStatus)
+
+
+def wait_for_axis(device: str, plan: MotionPlan, status: Callable[[], S], position: Callable[[S], float],
+                  target: float, start: float, unit: str, stop: Callable[[], None],
+                  progress: Progress | None = None) -> S:
+    """`wait_until_idle` for a single-axis controller (turntable, lift): its STATUS? polled, a
+    FAULT state raised as a DeviceFault, progress the share of the way from `start` to `target`
+    (`position(status)` in the same wire units); returns the last status."""
+    span = abs(target - start) or 1.0
+    holder: list[S] = []
+
+    def poll() -> Poll:
+        st = status()
+        holder.append(st)
+        pos = position(st)
+        if st.state == "FAULT":
+            raise DeviceFault(device, 40, f"fault {st.fault} at {pos:.3f} {unit}", plan.description)
+        return Poll(st.moving, 1.0 - abs(target - pos) / span, f"at {pos:.3f} {unit}")
+
+    wait_until_idle(device, plan, poll, stop, progress)
+    return holder[-1]

@@ -17,11 +17,11 @@ from typing import Sequence
 
 import numpy as np
 
-from drivers.errors import DeviceFault, MotionIncomplete, OutOfRange, ProtocolError, RigMismatch, WorkspaceError
-from drivers.motion import MotionPlan, Poll, Progress, link_drops, name_link_loss, sent_motion, wait_until_idle
+from drivers.errors import DeviceFault, MotionIncomplete, OutOfRange, ProtocolError, WorkspaceError
+from drivers.motion import MotionPlan, Poll, Progress, link_drops, name_link_loss, read_limits, sent_motion, wait_until_idle
 from drivers.stewart_kinematics import IkResult, StewartKinematics, as_pose, describe
 from drivers.transport import LineTransport
-from drivers.wire import parse_fields, parse_float, parse_floats
+from drivers.wire import parse_fields, parse_floats
 from lab.comms import CommsSink, null_sink
 from lab.config import StewartConfig
 from lab.geometry import Pose3
@@ -88,17 +88,11 @@ class Stewart:
 
     def hardware(self) -> StewartHardware:
         if self._hw is None:
-            req = "LIMITS?"
-            f = parse_fields(self.name, req, self.link.request(req), ("min_mm", "max_mm", "speed_mm_s", "settle_s"))
-            hw = StewartHardware(*(parse_float(self.name, req, f[k]) for k in ("min_mm", "max_mm", "speed_mm_s", "settle_s")))
             g = self.config.geometry
-            if g.leg_min_m * 1000 < hw.min_mm - 1e-9 or g.leg_max_m * 1000 > hw.max_mm + 1e-9:
-                raise RigMismatch(self.name, f"rig leg limits [{g.leg_min_m * 1000:g}, {g.leg_max_m * 1000:g}] mm exceed "
-                                             f"the hardware stroke [{hw.min_mm:g}, {hw.max_mm:g}] mm: fix "
-                                             f"[stewart] leg_min_m/leg_max_m")
-            if hw.speed_mm_s <= 0:
-                raise ProtocolError(self.name, f"LIMITS? reports speed {hw.speed_mm_s} mm/s")
-            self._hw = hw
+            self._hw = StewartHardware(*read_limits(
+                self.name, self.link.request, ("min_mm", "max_mm", "speed_mm_s", "settle_s"),
+                (g.leg_min_m * 1000, g.leg_max_m * 1000), "mm", "[stewart] leg_min_m/leg_max_m",
+                rig="rig leg limits", travel="stroke"))
         return self._hw
 
     def status(self) -> StewartStatus:

@@ -9,8 +9,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from drivers.errors import DeviceFault, MotionIncomplete, OutOfRange, ProtocolError, RigMismatch
-from drivers.motion import MotionPlan, Poll, Progress, link_drops, name_link_loss, sent_motion, wait_until_idle
+from drivers.errors import MotionIncomplete, OutOfRange, ProtocolError
+from drivers.motion import MotionPlan, Progress, link_drops, name_link_loss, read_limits, sent_motion, wait_for_axis
 from drivers.transport import LineTransport
 from drivers.wire import parse_fields, parse_float
 from lab.comms import CommsSink, null_sink
@@ -66,17 +66,10 @@ class Turntable:
     def hardware(self) -> TurntableHardware:
         """The device's travel, speed and settling time (read once), checked against the rig."""
         if self._hw is None:
-            req = "LIMITS?"
-            f = parse_fields(self.name, req, self.link.request(req), ("min_deg", "max_deg", "speed_deg_s", "settle_s"))
-            hw = TurntableHardware(*(parse_float(self.name, req, f[k]) for k in
-                                     ("min_deg", "max_deg", "speed_deg_s", "settle_s")))
-            lo, hi = math.degrees(self.config.min_rad), math.degrees(self.config.max_rad)
-            if lo < hw.min_deg - 1e-9 or hi > hw.max_deg + 1e-9:
-                raise RigMismatch(self.name, f"rig limits [{lo:g}, {hi:g}] deg exceed the hardware travel "
-                                             f"[{hw.min_deg:g}, {hw.max_deg:g}] deg: fix [turntable] min_deg/max_deg")
-            if hw.speed_deg_s <= 0:
-                raise ProtocolError(self.name, f"LIMITS? reports speed {hw.speed_deg_s} deg/s")
-            self._hw = hw
+            self._hw = TurntableHardware(*read_limits(
+                self.name, self.link.request, ("min_deg", "max_deg", "speed_deg_s", "settle_s"),
+                (math.degrees(self.config.min_rad), math.degrees(self.config.max_rad)), "deg",
+                "[turntable] min_deg/max_deg"))
         return self._hw
 
     def status(self) -> TurntableStatus:
@@ -155,19 +148,8 @@ class Turntable:
         sent_motion(self, lambda: self.link.request(line, idempotent=False), self.stop)
 
     def _wait(self, plan: MotionPlan, target_deg: float, start_deg: float, progress: Progress | None) -> TurntableStatus:
-        span = abs(target_deg - start_deg) or 1.0
-        holder: list[TurntableStatus] = []
-
-        def poll() -> Poll:
-            st = self.status()
-            holder.append(st)
-            pos = math.degrees(st.angle_rad)
-            if st.state == "FAULT":
-                raise DeviceFault(self.name, 40, f"fault {st.fault} at {pos:.3f} deg", plan.description)
-            return Poll(st.moving, 1.0 - abs(target_deg - pos) / span, f"at {pos:.3f} deg")
-
-        wait_until_idle(self.name, plan, poll, self.stop, progress)
-        return holder[-1]
+        return wait_for_axis(self.name, plan, self.status, lambda st: math.degrees(st.angle_rad), target_deg, start_deg,
+                             "deg", self.stop, progress)
 
     def close(self) -> None:
         self.link.close()
