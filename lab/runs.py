@@ -254,5 +254,48 @@ def format_list(entries: list[RunEntry]) -> str:
     return "\n".join("  ".join(c.ljust(w) for c, w in zip(r[:-1], widths)) + "  " + r[-1] for r in rows).rstrip()
 
 
+@dataclass(frozen=True)
+class MetricStats:
+    """One metric of a run (`/metrics`, e.g. `slam/update_s`, the BORG step's estimator time)."""
+
+    name: str
+    unit: str
+    count: int
+    median: float
+    p90: float
+    max: float
+
+
+def run_metrics(path: Path) -> dict[str, tuple[str, list[float]]]:
+    """Every metric a run logged: name -> (unit, values in log order).  Reads only the metrics
+    topic (a few hundred records of a file that is mostly images)."""
+    from lab.recorder import topics
+    from lab.recorder.reader import iter_messages
+
+    out: dict[str, tuple[str, list[float]]] = {}
+    for msg in iter_messages(path, topics.METRICS):
+        out.setdefault(msg.message.name, (msg.message.unit, []))[1].append(float(msg.message.value))
+    return out
+
+
+def metric_stats(metrics: dict[str, tuple[str, list[float]]]) -> list[MetricStats]:
+    import numpy as np
+
+    return [MetricStats(name, unit, len(v), float(np.median(v)), float(np.percentile(v, 90)), float(max(v)))
+            for name, (unit, v) in sorted(metrics.items()) if v]
+
+
+def format_metrics(stats: list[MetricStats]) -> str:
+    """A line per metric; seconds shown in ms."""
+    def show(x: float, unit: str) -> str:
+        return f"{x * 1000:.1f} ms" if unit == "s" else f"{x:.4g} {unit}".rstrip()
+
+    rows = [("metric", "count", "median", "90th pct", "max")]
+    rows += [(m.name, str(m.count), show(m.median, m.unit), show(m.p90, m.unit), show(m.max, m.unit)) for m in stats]
+    widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
+
+
 __all__ = ["runs_root", "load_config", "config_path", "RunEntry", "read_run", "find_runs", "list_runs",
-           "resolve_run", "format_list", "format_duration", "ENV_ROOT", "ENV_CONFIG"]
+           "resolve_run", "format_list", "format_duration", "MetricStats", "run_metrics", "metric_stats",
+           "format_metrics", "ENV_ROOT", "ENV_CONFIG"]

@@ -105,6 +105,21 @@ def test_show_prints_the_summary_and_the_verdict_table(root: Path) -> None:
     assert r.returncode == 0 and "result completed" in r.stdout
 
 
+def test_show_timings_reads_the_runs_metrics(root: Path) -> None:
+    """`--timings`: each metric of run.mcap once, the BORG step's estimator time a value per step."""
+    r = _lab(["runs", "show", "borg-short", "--root", str(root), "--timings"], _env(), root)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    head = lines.index(next(line for line in lines if line.startswith("metric ")))
+    rows = {line.split()[0]: line.split() for line in lines[head + 1:]}
+    assert rows["slam/update_s"][1] == "2" and rows["slam/update_s"][3] == "ms"
+    r = _lab(["runs", "show", "borg-short", "--root", str(root), "--timings", "--json"], _env(), root)
+    t = {m["name"]: m for m in json.loads(r.stdout)["timings"]}
+    step = t["slam/update_s"]
+    assert step["unit"] == "s" and step["count"] == 2 and 0 < step["median"] <= step["p90"] <= step["max"]
+    assert abs(float(rows["slam/update_s"][2]) - step["median"] * 1000) <= 0.05
+
+
 def test_the_default_root_comes_from_the_environment_or_the_user_config(tmp_path: Path) -> None:
     assert runs_root({"HOME": str(tmp_path)}) == (Path("runs"), "default")
     assert runs_root({"LAB_RUNS": "/data/runs"})[0] == Path("/data/runs")

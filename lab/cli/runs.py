@@ -1,4 +1,4 @@
-"""`lab runs [--root DIR] [--json]` and `lab runs show RUN`: the catalogue of past runs (lab/runs.py)."""
+"""`lab runs [--root DIR] [--json]` and `lab runs show RUN [--timings]`: the catalogue of past runs (lab/runs.py)."""
 
 from __future__ import annotations
 
@@ -16,6 +16,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     rsub = p.add_subparsers(dest="runs_command", metavar="show")
     s = rsub.add_parser("show", help="a run's summary and its verdict (or node) table")
     s.add_argument("run", metavar="RUN", help="a run id from `lab runs`, a run directory or its run.mcap")
+    s.add_argument("--timings", action="store_true",
+                   help="also the run's metrics from run.mcap: count, median, 90th percentile, max of each "
+                        "(slam/update_s: the estimator's time per BORG step)")
     _common(s)
     s.set_defaults(func=_show)
 
@@ -57,8 +60,21 @@ def _show(args: argparse.Namespace) -> int:
     run_dir = resolve_run(args.run, root)
     entry = read_run(run_dir, root)
     summary = _summary(run_dir)
+    timings = None
+    if getattr(args, "timings", False):
+        from dataclasses import asdict
+
+        from lab.runs import RUN_FILE, metric_stats, run_metrics
+
+        mcap = run_dir / RUN_FILE
+        timings = metric_stats(run_metrics(mcap)) if mcap.exists() else []
+        if getattr(args, "json", False):
+            timings = [asdict(m) for m in timings]
     if getattr(args, "json", False):
-        print(json.dumps({"run": entry.to_json(), "summary": summary}, indent=1))
+        out = {"run": entry.to_json(), "summary": summary}
+        if timings is not None:
+            out["timings"] = timings
+        print(json.dumps(out, indent=1))
         return 0
     print(f"run {entry.id}  ({run_dir})")
     print(f"procedure {entry.procedure or '?'}  structure {entry.structure or '?'}  rig {entry.rig or '?'}")
@@ -81,6 +97,11 @@ def _show(args: argparse.Namespace) -> int:
         print(format_truss_table(summary))
     else:
         print(json.dumps({k: v for k, v in summary.items() if k not in ("result", "reason")}, indent=1)[:4000])
+    if timings is not None:
+        from lab.runs import format_metrics
+
+        print()
+        print(format_metrics(timings) if timings else "no metrics in run.mcap")
     return 0
 
 

@@ -147,8 +147,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _median_metric(path: Path, name: str) -> float:
-    from lab.recorder.reader import iter_messages
-    from lab.recorder import topics
+    from lab.runs import run_metrics
 
-    vals = sorted(m.message.value for m in iter_messages(path) if m.topic == topics.METRICS and m.message.name == name)
+    vals = sorted(run_metrics(path).get(name, ("", []))[1])
     return vals[len(vals) // 2] if vals else float("nan")
