@@ -45,7 +45,7 @@ from lab.rig_calibration import RigCalibration
 
 AXIS, BASE, MOUNT, INTRINSICS, LIFT = (gtsam.symbol(c, 0) for c in "abmkl")
 _E_RZ = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
-_GAUGE_SIGMA = 1e-7
+GAUGE_SIGMA = 1e-7
 
 
 @dataclass(frozen=True)
@@ -104,15 +104,15 @@ class RigGeometry:
             axis_cov = calibration.covariance["world_T_axis"].copy()
             axis_cov[[2, 5], :] = 0.0
             axis_cov[:, [2, 5]] = 0.0
-            axis_cov[2, 2] = axis_cov[5, 5] = _GAUGE_SIGMA ** 2
+            axis_cov[2, 2] = axis_cov[5, 5] = GAUGE_SIGMA ** 2
             means = {AXIS: calibration.world_T_axis, BASE: calibration.world_T_base, MOUNT: calibration.platform_T_camera}
             covs = {AXIS: axis_cov, BASE: calibration.covariance["world_T_base"],
                     MOUNT: calibration.covariance["platform_T_camera"]}
         else:
             # isotropic per block, so the same in the pose's own tangent as in its parent's axes
             means = {AXIS: Pose3(), BASE: self.nominal_world_T_base, MOUNT: self.nominal_platform_T_camera}
-            covs = {AXIS: np.diag([c.turntable_axis_sigma_rad, c.turntable_axis_sigma_rad, _GAUGE_SIGMA,
-                                   c.turntable_axis_sigma_m, c.turntable_axis_sigma_m, _GAUGE_SIGMA]) ** 2,
+            covs = {AXIS: np.diag([c.turntable_axis_sigma_rad, c.turntable_axis_sigma_rad, GAUGE_SIGMA,
+                                   c.turntable_axis_sigma_m, c.turntable_axis_sigma_m, GAUGE_SIGMA]) ** 2,
                     BASE: np.diag([c.stewart_base_sigma_rad] * 3 + [c.stewart_base_sigma_m] * 3) ** 2,
                     MOUNT: np.diag([c.camera_mount_sigma_rad] * 3 + [c.camera_mount_sigma_m] * 3) ** 2}
         return means, covs
@@ -121,7 +121,7 @@ class RigGeometry:
         """The lift's axis: vertical, known to the [calibration] lift_axis_sigma in tilt; its yaw
         and position are gauge (they do not change lift(h))."""
         t = self.config.lift_axis_sigma_rad
-        return Pose3(), np.diag([t, t, _GAUGE_SIGMA, _GAUGE_SIGMA, _GAUGE_SIGMA, _GAUGE_SIGMA]) ** 2
+        return Pose3(), np.diag([t, t, GAUGE_SIGMA, GAUGE_SIGMA, GAUGE_SIGMA, GAUGE_SIGMA]) ** 2
 
     def chain_noise(self, motion: ViewMotion, M: Pose3 | None = None) -> gtsam.noiseModel.Base:
         """The devices' repeatability, propagated to the camera pose (its tangent).  A lifted view

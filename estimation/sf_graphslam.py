@@ -36,8 +36,9 @@ from typing import Iterable, Sequence
 import gtsam
 import numpy as np
 
+from estimation.corner_noise import CornerNoise, measured_corner_noise
 from estimation.fiducials import Detection, tag_object_points
-from estimation.rig_model import (AXIS, BASE, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
+from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
                                   chain_factor, corner_factor, side_ratio, tag_prior_noise, undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.geometry import Pose3, Rot3
@@ -151,13 +152,55 @@ class SfGraphSlam:
         self.specs: list[tuple] = []
         # a new tag's sightings until the next solve gives it its initial value
         self._pending: dict[int, list[tuple[Pose3, Detection]]] = {}
+        # the corner noise measured from the run's own residuals (corner_noise): each corner factor's
+        # graph index and obliquity scale, and the face-on residuals of those evaluated so far
+        self._corner_factors: list[tuple[int, float]] = []
+        self._residuals_done = 0
+        self._face_on_residuals: list[np.ndarray] = []
+        self._corner_params = 0                          # variables the corners determine (6 per tag and view)
+        # turntable tags whose prior is part of the calibration's joint prior (valued from the start)
+        self._joint_tags: set[int] = set()
         if rig is not None:
-            means, covs = rig.priors(calibration)
-            for key in (AXIS, BASE, MOUNT):
-                f = gtsam.PriorFactorPose3(key, means[key], gtsam.noiseModel.Gaussian.Covariance(covs[key]))
-                self._add(f, ("rig_prior", f, key, means[key]))
-                self._value(key, means[key])
+            if calibration is not None and calibration.joint_covariance is not None:
+                self._joint_prior(rig, calibration)
+            else:
+                means, covs = rig.priors(calibration)
+                for key in (AXIS, BASE, MOUNT):
+                    f = gtsam.PriorFactorPose3(key, means[key], gtsam.noiseModel.Gaussian.Covariance(covs[key]))
+                    self._add(f, ("rig_prior", f, key, means[key]))
+                    self._value(key, means[key])
             self.estimate = gtsam.Values(self.initial)
+
+    def _joint_prior(self, rig: RigGeometry, cal: RigCalibration) -> None:
+        """The rig survey's whole posterior over the axis, base, mount and turntable tags as one
+        Gaussian factor (a LinearContainerFactor: the information matrix about the survey's
+        estimate, in each pose's tangent, evaluated in C++).  Per-variable priors would drop the
+        correlations, and the turntable tags' common error -- the frame every verdict is read in --
+        would count once per tag."""
+        means, _ = rig.priors(cal)
+        blocks = cal.joint_blocks()
+        keys = [AXIS, BASE, MOUNT] + [self.key(t) for t in blocks[3:]]
+        values = [means[AXIS], means[BASE], means[MOUNT]] + [cal.turntable_tags[t] for t in blocks[3:]]
+        cov = np.array(cal.joint_covariance, float)
+        # the axis frame's yaw and height are gauge (rig_model.RigGeometry.priors)
+        for i in (2, 5):
+            cov[i, :] = cov[:, i] = 0.0
+            cov[i, i] = GAUGE_SIGMA ** 2
+        info = np.linalg.inv(0.5 * (cov + cov.T))
+        lin = gtsam.GaussianFactorGraph()
+        point = gtsam.Values()
+        for i, (key, value) in enumerate(zip(keys, values)):
+            point.insert(key, value)
+            lin.add(gtsam.HessianFactor(key, info[6 * i:6 * i + 6, 6 * i:6 * i + 6], np.zeros(6), 0.0))
+            for j in range(i + 1, len(keys)):
+                z = np.zeros((6, 6))
+                lin.add(gtsam.HessianFactor(key, keys[j], z, info[6 * i:6 * i + 6, 6 * j:6 * j + 6], np.zeros(6), z,
+                                            np.zeros(6), 0.0))
+        f = gtsam.LinearContainerFactor(gtsam.HessianFactor(lin), point)
+        self._add(f, ("as_is", f))
+        for key, value in zip(keys, values):
+            self._value(key, value)
+        self._joint_tags = {int(t) for t in blocks[3:]}
 
     def _turntable_tag_prior(self, tag: int) -> None:
         """The turntable tags fix the structure frame: at their design poses, known to the rig's
@@ -226,6 +269,7 @@ class SfGraphSlam:
             f = gtsam.PriorFactorPose3(C(k), structure_T_camera, self.camera_noise)
             self._add(f, ("as_is", f))
         self._value(C(k), structure_T_camera)
+        self._corner_params += 6
         c = self.config
         for d in detections:
             if d.tag_id not in self.model.tags:
@@ -244,6 +288,7 @@ class SfGraphSlam:
                 self._add(corner_factor(C(k), self.key(d.tag_id), undistort_px(d.corners_px, K, dist),
                                         tag_object_points(d.size_m), c.corner_sigma_px * scale,
                                         robust_k=_robust_k(8) if c.huber_k else None, fixed=self._cal), spec)
+                self._corner_factors.append((self.graph.size() - 1, scale))
             else:
                 if c.observation == "corner-info":
                     gauss = self._corner_information(d, c.corner_sigma_px * scale)
@@ -258,9 +303,12 @@ class SfGraphSlam:
                          if c.huber_k else gauss)
                 self._add(gtsam.BetweenFactorPose3(C(k), self.key(d.tag_id), d.camera_T_tag, noise), spec)
             if d.tag_id not in self.tags:
+                self._corner_params += 6
                 self.tags.add(d.tag_id)
                 self._pending[self.key(d.tag_id)] = []
-                if self.rig is not None and self.model.tags[d.tag_id].module == "turntable":
+                if d.tag_id in self._joint_tags:
+                    self._pending.pop(self.key(d.tag_id))      # valued with the joint prior
+                elif self.rig is not None and self.model.tags[d.tag_id].module == "turntable":
                     self._turntable_tag_prior(d.tag_id)
             if self.key(d.tag_id) in self._pending:
                 self._pending[self.key(d.tag_id)].append((structure_T_camera, d))
@@ -399,6 +447,25 @@ class SfGraphSlam:
         self.estimate = self.isam.calculateEstimate()
         self._batch_solved = False
         self._batch_marginals = None
+        self._collect_residuals()
+
+    # ---- the corner noise, measured -----------------------------------------------------------
+    def _collect_residuals(self) -> None:
+        """The face-on reprojection residuals of the corner factors added since the last solve, at
+        the estimate that first includes them (each factor once: O(new factors) per step)."""
+        todo = self._corner_factors[self._residuals_done:]
+        self._residuals_done = len(self._corner_factors)
+        for index, scale in todo:
+            f = self.graph.at(index)
+            if all(self.estimate.exists(k) for k in f.keys()):
+                self._face_on_residuals.append(np.asarray(f.unwhitenedError(self.estimate), float) / scale)
+
+    def corner_noise(self) -> CornerNoise | None:
+        """The corner sigma the run's residuals imply (corner model only; None before any)."""
+        if not self._face_on_residuals:
+            return None
+        return measured_corner_noise(np.concatenate(self._face_on_residuals), self._corner_params,
+                                     self.config.corner_sigma_px)
 
     def solve_batch(self, max_iterations: int = 100, warm_start: bool = False) -> gtsam.Values:
         """Levenberg–Marquardt over the whole graph from the initial values (studies), or from the
@@ -549,12 +616,17 @@ class SfGraphSlam:
         return self.estimate.exists(self.key(tag))
 
     def tag_covariance(self, tag: int) -> np.ndarray:
-        """Marginal covariance of a tag pose from the solver that made the current estimate."""
+        """Marginal covariance of a tag pose from the solver that made the current estimate, scaled
+        by the a-posteriori variance factor when the corners proved noisier than the graph assumed
+        (never scaled down: the survey's priors do not shrink with the corners)."""
         if self._batch_solved:
             if self._batch_marginals is None:
                 self._batch_marginals = gtsam.Marginals(self.graph, self.estimate)
-            return self._batch_marginals.marginalCovariance(self.key(tag))
-        return self.isam.marginalCovariance(self.key(tag))
+            cov = self._batch_marginals.marginalCovariance(self.key(tag))
+        else:
+            cov = self.isam.marginalCovariance(self.key(tag))
+        noise = self.corner_noise()
+        return cov * noise.covariance_scale if noise is not None else cov
 
     def camera_pose(self, k: int) -> Pose3:
         return self.estimate.atPose3(C(k))
