@@ -214,7 +214,8 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
     tag_poses = {t: est.atPose3(T(t)) for t in sorted(seen & tt)}
     tag_covs = {t: marg.marginalCovariance(T(t)) for t in tag_poses}
     # the run's prior is this joint covariance, not the marginals (lab/rig_calibration.py)
-    joint = marg.jointMarginalCovariance(gtsam.KeyVector([AXIS, BASE, MOUNT, *(T(t) for t in tag_poses)])).fullMatrix()
+    joint = marg.jointMarginalCovariance(gtsam.KeyVector([AXIS, BASE, MOUNT, INTRINSICS,
+                                                          *(T(t) for t in tag_poses)])).fullMatrix()
     residuals = _residuals(views, est, K_und, dist, tags)
     calibration = RigCalibration(est.atPose3(MOUNT), est.atPose3(BASE), est.atPose3(AXIS), K, cov, tag_poses,
                                  tag_covs, float(np.sqrt(np.mean(residuals ** 2))) if residuals.size else float("nan"),

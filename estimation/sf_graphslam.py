@@ -38,7 +38,7 @@ import numpy as np
 
 from estimation.corner_noise import CornerNoise, measured_corner_noise
 from estimation.fiducials import Detection, tag_object_points
-from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
+from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
                                   chain_factor, corner_factor, side_ratio, tag_prior_noise, undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.geometry import Pose3, Rot3
@@ -179,8 +179,10 @@ class SfGraphSlam:
         would count once per tag."""
         means, _ = rig.priors(cal)
         blocks = cal.joint_blocks()
-        keys = [AXIS, BASE, MOUNT] + [self.key(t) for t in blocks[3:]]
-        values = [means[AXIS], means[BASE], means[MOUNT]] + [cal.turntable_tags[t] for t in blocks[3:]]
+        tags = [int(name) for name, _ in blocks[4:]]
+        keys = [AXIS, BASE, MOUNT, INTRINSICS] + [self.key(t) for t in tags]
+        values = [means[AXIS], means[BASE], means[MOUNT], cal3_s2(cal.K)] + [cal.turntable_tags[t] for t in tags]
+        at = np.cumsum([0] + [size for _, size in blocks])
         cov = np.array(cal.joint_covariance, float)
         # the axis frame's yaw and height are gauge (rig_model.RigGeometry.priors)
         for i in (2, 5):
@@ -191,16 +193,21 @@ class SfGraphSlam:
         point = gtsam.Values()
         for i, (key, value) in enumerate(zip(keys, values)):
             point.insert(key, value)
-            lin.add(gtsam.HessianFactor(key, info[6 * i:6 * i + 6, 6 * i:6 * i + 6], np.zeros(6), 0.0))
+            bi = slice(at[i], at[i + 1])
+            lin.add(gtsam.HessianFactor(key, info[bi, bi], np.zeros(at[i + 1] - at[i]), 0.0))
             for j in range(i + 1, len(keys)):
-                z = np.zeros((6, 6))
-                lin.add(gtsam.HessianFactor(key, keys[j], z, info[6 * i:6 * i + 6, 6 * j:6 * j + 6], np.zeros(6), z,
-                                            np.zeros(6), 0.0))
+                bj = slice(at[j], at[j + 1])
+                lin.add(gtsam.HessianFactor(key, keys[j], np.zeros((at[i + 1] - at[i],) * 2), info[bi, bj],
+                                            np.zeros(at[i + 1] - at[i]), np.zeros((at[j + 1] - at[j],) * 2),
+                                            np.zeros(at[j + 1] - at[j]), 0.0))
         f = gtsam.LinearContainerFactor(gtsam.HessianFactor(lin), point)
         self._add(f, ("as_is", f))
         for key, value in zip(keys, values):
             self._value(key, value)
-        self._joint_tags = {int(t) for t in blocks[3:]}
+        self._joint_tags = set(tags)
+        # the corners see the intrinsics as the variable they are (the survey's uncertainty in the
+        # focal length scales every distance): the corner factors take them from the graph
+        self._cal = None
 
     def _turntable_tag_prior(self, tag: int) -> None:
         """The turntable tags fix the structure frame: at their design poses, known to the rig's
@@ -361,7 +368,7 @@ class SfGraphSlam:
         self.graph.add(factor)
         self.specs.append(spec)
 
-    def _value(self, key: int, value: Pose3) -> None:
+    def _value(self, key: int, value: Pose3 | gtsam.Cal3_S2) -> None:
         self._new_values.insert(key, value)
         self.initial.insert(key, value)
 

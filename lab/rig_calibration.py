@@ -11,10 +11,12 @@ translation) at the estimate; the intrinsics' is 4x4 over (fx, fy, cx, cy).
 
 The marginals alone would lose what matters most: the survey locates the three rig poses and the
 turntable tags together, so their errors are correlated (the tags' glue errors move the frame they
-all define; a shift of the base trades against a shift of the mount).  `joint_covariance` keeps
-the whole covariance over (`JOINT_POSES`, then each turntable tag in id order), 6x6 blocks in the
-same tangent order, and a run takes it as one prior: twelve tags' marginals used as independent
-priors count the frame's common error twelve times (a module's 1-sigma 3x too small).
+all define; a shift of the base trades against a shift of the mount; the focal length against
+the distance to everything).  `joint_covariance` keeps the whole covariance over `JOINT_POSES`
+(6x6 blocks in the same tangent order), the intrinsics (5: fx, fy, skew, cx, cy, GTSAM's Cal3_S2),
+then each turntable tag in id order (6 each), and a run takes it as one prior: twelve tags'
+marginals used as independent priors count the frame's common error twelve times (a module's
+1-sigma 3x too small), and intrinsics held exact hide the focal length's share.
 """
 
 from __future__ import annotations
@@ -49,14 +51,14 @@ class RigCalibration:
     views: int = 0
     rig: str = ""
     created: str = ""
-    # over JOINT_POSES then sorted(turntable_tags): (6 * (3 + tags))^2; None: marginals only
+    # over JOINT_POSES, "K" (5), then sorted(turntable_tags); None: marginals only
     joint_covariance: np.ndarray | None = None
     # the face-on corner noise the survey's residuals implied: a run's graph starts from it
     corner_sigma_px: float = float("nan")
 
-    def joint_blocks(self) -> tuple[str | int, ...]:
-        """What the joint covariance's 6x6 blocks are, in order."""
-        return (*JOINT_POSES, *sorted(self.turntable_tags))
+    def joint_blocks(self) -> tuple[tuple[str | int, int], ...]:
+        """What the joint covariance's blocks are, in order, with their sizes."""
+        return joint_blocks(self.turntable_tags)
 
     def sigmas(self) -> dict[str, dict[str, float]]:
         """1-sigma of each quantity in the units a person reads (mm, deg, px)."""
@@ -95,6 +97,10 @@ class RigCalibration:
         tmp.write_text(json.dumps(self.to_json(), indent=1) + "\n")
         tmp.replace(p)
         return p
+
+
+def joint_blocks(turntable_tags: Any) -> tuple[tuple[str | int, int], ...]:
+    return (*((name, 6) for name in JOINT_POSES), ("K", 5), *((int(t), 6) for t in sorted(turntable_tags)))
 
 
 def _pose(d: Any, where: str, src: str) -> tuple[Pose3, np.ndarray | None]:
@@ -165,14 +171,14 @@ def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
                             f"got {data['corner_sigma_px']!r}") from None
     joint = None
     if "joint_covariance" in data:
-        n = 6 * (len(JOINT_POSES) + len(tags))
+        n = sum(size for _, size in joint_blocks(tags))
         try:
             joint = np.asarray(data["joint_covariance"], dtype=float)
             if joint.shape != (n, n) or not np.all(np.isfinite(joint)):
                 raise ValueError
         except (TypeError, ValueError):
             raise UserError(f"rig calibration {p}: joint_covariance: expected a finite {n}x{n} matrix "
-                            f"(the rig poses and {len(tags)} turntable tags)") from None
+                            f"(the rig poses, the intrinsics and {len(tags)} turntable tags)") from None
     return RigCalibration(poses["platform_T_camera"], poses["world_T_base"], poses["world_T_axis"], K, covs, tags,
                           tag_covs, float(data.get("rms_px", float("nan"))), int(data.get("views", 0)),
                           str(data.get("rig", "")), str(data.get("created", "")), joint, corner_sigma)

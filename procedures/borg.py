@@ -414,7 +414,7 @@ class BorgProcedure:
         import gtsam
 
         from estimation.precision import bound_covariances, module_sigma
-        from estimation.rig_model import AXIS, BASE, LIFT, MOUNT
+        from estimation.rig_model import AXIS, BASE, INTRINSICS, LIFT, MOUNT, cal3_s2
         from estimation.sf_graphslam import GENERATION
         from dataclasses import replace
 
@@ -438,7 +438,8 @@ class BorgProcedure:
                                  turntable_tag_sigma_m=None if calibrated else max(e.turntable_tag_sigma_m, floor))
         truth = gtsam.Values()
         rig = {AXIS: world.true_rig.world_T_axis, BASE: world.true_rig.world_T_base,
-               MOUNT: world.true_rig.platform_T_camera, LIFT: world.true_rig.world_T_lift}
+               MOUNT: world.true_rig.platform_T_camera, LIFT: world.true_rig.world_T_lift,
+               INTRINSICS: cal3_s2(world.camera.K)}
         for key in graph.keyVector():
             sym = gtsam.Symbol(key)
             ch, idx = chr(sym.chr()), sym.index()

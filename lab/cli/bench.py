@@ -15,6 +15,8 @@ BENCHES: dict[str, tuple[str, str]] = {
     "run": ("procedures.studies.bench_run", "end-to-end simulated procedure runs (BORG, tetrahelix)"),
     "calibration": ("procedures.studies.bench_calibration", "BORG verdicts and accuracy against rig-error size, with and "
                                                     "without rig calibration"),
+    "trust": ("procedures.studies.bench_trust", "verdicts, accuracy and honest 1-sigma against rig-error size and "
+                                                "camera quality"),
     "faults": ("procedures.studies.bench_faults", "the fault campaign: device faults, kills, signals, bad input, abuse"),
 }
 
