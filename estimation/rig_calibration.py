@@ -44,6 +44,7 @@ from lab.rig_calibration import RigCalibration
 
 C = gtsam.symbol_shorthand.C
 T = gtsam.symbol_shorthand.T
+S = gtsam.symbol_shorthand.S   # a turntable tag's print scale
 
 
 @dataclass(frozen=True)
@@ -166,13 +167,16 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
               tags: Mapping[int, tuple[Pose3, float]], *, turntable_tags: Sequence[int] = (),
               corner_sigma_px: float = 0.15, limits: Limits | None = None, rig_name: str = "",
               max_iterations: int = 60, passes: int = 4, min_side_ratio: float = MIN_SIDE_RATIO,
-              measure_corner_sigma: bool = True, oblique_exponent: float = OBLIQUE_EXPONENT) -> RigSolution:
+              measure_corner_sigma: bool = True, oblique_exponent: float = OBLIQUE_EXPONENT,
+              tag_scale_sigma: float = 0.0) -> RigSolution:
     """Calibrate the rig from `views`.  `tags`: every tag that may be seen, id -> (design
     structure_T_tag, size); `turntable_tags` among them get a pose variable with a design prior
     (the rig's turntable_tag_sigma), the others are held at their design poses by a tight prior.
     `corner_sigma_px` is the first pass's corner noise; with `measure_corner_sigma` later passes
     use the one the residuals imply.  Sightings flatter than `min_side_ratio` are left out; the
-    others' corner sigma grows as side_ratio ** -oblique_exponent (`corner_sigma_px` is face-on)."""
+    others' corner sigma grows as side_ratio ** -oblique_exponent (`corner_sigma_px` is face-on).
+    `tag_scale_sigma`: each turntable tag's print scale is a variable with this prior (relative),
+    so a tag printed large does not pull the rig toward it (its uncertainty reaches the covariance)."""
     limits = limits or Limits()
     K0 = geometry.K
     views, dropped = drop_oblique(views, K0, dist, min_side_ratio)
@@ -188,7 +192,7 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
     glue = geometry.config.turntable_tag_sigma_m
     for k in range(max(1, passes)):
         graph, values, seen, n_views = _build(views, geometry, dist, tags, turntable_tags, sigma, K_und,
-                                              means, covs, B0, M0, est, scale, glue)
+                                              means, covs, B0, M0, est, scale, glue, tag_scale_sigma)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
         params.setRelativeErrorTol(1e-8)
@@ -270,7 +274,7 @@ def _measured_glue_sigma(graph: gtsam.NonlinearFactorGraph, est: gtsam.Values, t
 
 
 def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, means, covs, B0, M0, start,
-           scale=None, glue_sigma_m=None):
+           scale=None, glue_sigma_m=None, tag_scale_sigma=0.0):
     """The calibration graph; `start` (a previous solution) seeds the values."""
     K0 = geometry.K
     cfg = geometry.config
@@ -309,8 +313,14 @@ def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, 
                 sig = glue if s.tag_id in tt else 1e-6
                 graph.add(gtsam.PriorFactorPose3(T(s.tag_id), pose, tag_prior_noise(sig, size)))
                 values.insert(T(s.tag_id), pose)
+                if s.tag_id in tt and tag_scale_sigma > 0:
+                    graph.add(gtsam.PriorFactorVector(S(s.tag_id), np.zeros(1),
+                                                      gtsam.noiseModel.Isotropic.Sigma(1, tag_scale_sigma)))
+                    values.insert(S(s.tag_id), np.zeros(1))
+            sk = S(s.tag_id) if s.tag_id in tt and tag_scale_sigma > 0 else None
             graph.add(corner_factor(C(k), T(s.tag_id), undistort_px(s.corners_px, K_und, dist),
-                                    tag_object_points(size), corner_sigma_px * (scale or {}).get((k, s.tag_id), 1.0)))
+                                    tag_object_points(size), corner_sigma_px * (scale or {}).get((k, s.tag_id), 1.0),
+                                    scale_key=sk))
     if start is not None:
         values = gtsam.Values(start)
     return graph, values, seen, n_views
@@ -332,7 +342,8 @@ def _residuals(views: Sequence[CalibrationView], est: gtsam.Values, K_und: np.nd
             pose = est.atPose3(T(s.tag_id))
             meas = undistort_px(s.corners_px, K_und, dist)
             w = (scale or {}).get((k, s.tag_id), 1.0)
-            for p, m in zip(tag_object_points(tags[s.tag_id][1]), meas):
+            printed = 1.0 + float(est.atVector(S(s.tag_id))[0]) if est.exists(S(s.tag_id)) else 1.0
+            for p, m in zip(printed * tag_object_points(tags[s.tag_id][1]), meas):
                 out.append(float(np.linalg.norm(cam.project(pose.transformFrom(p)) - m)) / w)
     return np.asarray(out)
 

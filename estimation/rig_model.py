@@ -215,11 +215,14 @@ def cal3_s2(K: np.ndarray) -> gtsam.Cal3_S2:
 
 def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_corners_m: np.ndarray,
                   sigma_px: float, intrinsics_key: int = INTRINSICS,
-                  robust_k: float | None = 3.0, fixed: gtsam.Cal3_S2 | None = None) -> gtsam.CustomFactor:
+                  robust_k: float | None = 3.0, fixed: gtsam.Cal3_S2 | None = None,
+                  scale_key: int | None = None) -> gtsam.CustomFactor:
     """Reprojection error (8-vector, px) of a tag's four corners.  `corners_px`: (4, 2)
     undistorted measurements in pixels of the nominal pinhole; `tag_corners_m`: (4, 3) the
     corners in the tag frame, in the same order.  With `fixed` intrinsics the factor is on the
-    camera and the tag only (a run: the intrinsics come from the rig calibration)."""
+    camera and the tag only (a run: the intrinsics come from the rig calibration).  With
+    `scale_key` the tag as printed is (1 + s) times its nominal size, s a 1-vector variable (a
+    printer's scale error moves a tag seen from one side along the line of sight by s x distance)."""
     meas = np.asarray(corners_px, dtype=float).reshape(4, 2)
     local = [np.asarray(p, dtype=float) for p in tag_corners_m]
     noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(8, sigma_px)
@@ -230,12 +233,13 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
         C = values.atPose3(camera_key)
         T = values.atPose3(tag_key)
         cam = gtsam.PinholeCameraCal3_S2(C, fixed if fixed is not None else values.atCal3_S2(intrinsics_key))
+        k = 1.0 + float(values.atVector(scale_key)[0]) if scale_key is not None else 1.0
         e = np.zeros(8)
-        JC, JT, JK = np.zeros((8, 6)), np.zeros((8, 6)), np.zeros((8, 5))
+        JC, JT, JK, JS = np.zeros((8, 6)), np.zeros((8, 6)), np.zeros((8, 5)), np.zeros((8, 1))
         Hp, Hl = np.zeros((3, 6), order="F"), np.zeros((3, 3), order="F")
         Dp, Dpt, Dk = np.zeros((2, 6), order="F"), np.zeros((2, 3), order="F"), np.zeros((2, 5), order="F")
         for i in range(4):
-            p = T.transformFrom(local[i], Hp, Hl)
+            p = T.transformFrom(k * local[i], Hp, Hl)
             try:
                 uv = cam.project(p, Dp, Dpt, Dk)
             except RuntimeError:          # behind the camera: a large, flat error
@@ -245,13 +249,18 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
             JC[2 * i:2 * i + 2] = Dp
             JT[2 * i:2 * i + 2] = Dpt @ Hp
             JK[2 * i:2 * i + 2] = Dk
+            JS[2 * i:2 * i + 2, 0] = Dpt @ Hl @ local[i]
         if jacobians is not None:
             jacobians[0], jacobians[1] = JC, JT
             if fixed is None:
                 jacobians[2] = JK
+            if scale_key is not None:
+                jacobians[-1] = JS
         return e
 
     keys = [camera_key, tag_key] if fixed is not None else [camera_key, tag_key, intrinsics_key]
+    if scale_key is not None:
+        keys.append(scale_key)
     return gtsam.CustomFactor(noise, keys, error)
 
 

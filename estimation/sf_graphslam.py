@@ -48,6 +48,7 @@ from lab.structures.borg import BorgModel
 OBSERVATIONS = ("corners", "corner-info", "pose")
 C = gtsam.symbol_shorthand.C   # camera views
 _T = gtsam.symbol_shorthand.T  # tags: T(tag id + GENERATION * generation)
+_S = gtsam.symbol_shorthand.S  # each printed tag's scale error (SlamConfig.tag_scale_sigma)
 GENERATION = 10_000             # a re-placed module's tags are new map elements
 
 
@@ -93,6 +94,10 @@ class SlamConfig:
     # [verification] corner_sigma_px; 0.02 px is 2.5x what the detector achieves on the simulated
     # camera (a simulated run reports it against the truth as corner_rms_px: 0.008 px)
     corner_sigma_px: float = 0.02
+    # the tags' print scale error (relative, 1 sigma): with the corner model each tag gets a scale
+    # variable with this prior, so a tag printed large is not read as a tag nearer the camera
+    # (0: tags exactly their nominal size)
+    tag_scale_sigma: float = 0.0
 
 
 @dataclass
@@ -243,6 +248,16 @@ class SfGraphSlam:
     def key(self, tag: int) -> int:
         return _T(tag + GENERATION * self.generation.get(tag, 0))
 
+    def _scale_key(self, tag: int) -> int:
+        """The tag's print scale variable (one per printed tag, so a re-placed module keeps it),
+        with its prior the first time the tag is seen."""
+        key = _S(tag)
+        if not self.initial.exists(key):
+            f = gtsam.PriorFactorVector(key, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, self.config.tag_scale_sigma))
+            self._add(f, ("as_is", f))
+            self._value(key, np.zeros(1))
+        return key
+
     def replace_tags(self, tags: Iterable[int]) -> None:
         """The module carrying these tags was re-placed or re-deployed: what was seen of it before
         no longer describes it.  Its tags become new variables (the old ones keep their old
@@ -288,13 +303,15 @@ class SfGraphSlam:
                 if ratio < MIN_SIDE_RATIO:
                     continue
                 scale = ratio ** -OBLIQUE_EXPONENT
-            spec = ("corners", C(k), self.key(d.tag_id), d.size_m, scale)
+            sk = self._scale_key(d.tag_id) if c.observation == "corners" and c.tag_scale_sigma > 0 else None
+            spec = ("corners", C(k), self.key(d.tag_id), d.size_m, scale, sk)
             if c.observation == "corners":
                 assert self.camera is not None
                 K, dist = self.camera
                 self._add(corner_factor(C(k), self.key(d.tag_id), undistort_px(d.corners_px, K, dist),
                                         tag_object_points(d.size_m), c.corner_sigma_px * scale,
-                                        robust_k=_robust_k(8) if c.huber_k else None, fixed=self._cal), spec)
+                                        robust_k=_robust_k(8) if c.huber_k else None, fixed=self._cal,
+                                        scale_key=sk), spec)
                 self._corner_factors.append((self.graph.size() - 1, scale))
             else:
                 if c.observation == "corner-info":
@@ -368,7 +385,7 @@ class SfGraphSlam:
         self.graph.add(factor)
         self.specs.append(spec)
 
-    def _value(self, key: int, value: Pose3 | gtsam.Cal3_S2) -> None:
+    def _value(self, key: int, value: Pose3 | gtsam.Cal3_S2 | np.ndarray) -> None:
         self._new_values.insert(key, value)
         self.initial.insert(key, value)
 
@@ -429,10 +446,10 @@ class SfGraphSlam:
                 assert self.rig is not None
                 g.add(chain_factor(self.rig, spec[1], spec[2], chain_noise(spec[1]) if chain_noise else None))
             elif kind == "corners":
-                _, ck, tk, size, scale = spec
+                _, ck, tk, size, scale, sk = spec
                 # the measurement is irrelevant to the covariance; only the Jacobians at the truth count
                 g.add(corner_factor(ck, tk, np.zeros((4, 2)), tag_object_points(size), corner_sigma_px * scale,
-                                    robust_k=None, fixed=self._cal))
+                                    robust_k=None, fixed=self._cal, scale_key=sk))
         return g
 
     def _marginal(self, tag: int) -> np.ndarray | None:

@@ -176,6 +176,10 @@ class VerificationConfig:
     # the detector's face-on corner accuracy on this rig's camera, what the graph assumes (measure
     # it: a simulated run reports corner_rms_px against the truth, `lab calibrate rig` its residual)
     corner_sigma_px: float = 0.02
+    # how well the tags were printed: each tag's size is off by this relative error (1 sigma).  The
+    # graph gives every tag a scale variable with this prior (measure a few printed tags with a
+    # caliper; 0 = printed exactly)
+    tag_scale_sigma: float = 0.001
 
 
 def _verification(t: "_Table") -> VerificationConfig:
@@ -189,7 +193,8 @@ def _verification(t: "_Table") -> VerificationConfig:
     cfg = VerificationConfig(tolerances, t.number("band_sigmas", default=2.0, minimum=0.0, maximum=10.0),
                              t.number("sigma_target_mm", default=0.25, positive=True, maximum=100.0) * 1e-3,
                              t.integer("max_views", default=12, minimum=1, maximum=200),
-                             t.number("corner_sigma_px", default=0.02, positive=True, maximum=5.0))
+                             t.number("corner_sigma_px", default=0.02, positive=True, maximum=5.0),
+                             t.number("tag_scale_percent", default=0.1, minimum=0.0, maximum=5.0) * 1e-2)
     t.done()
     return cfg
 

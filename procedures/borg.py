@@ -111,6 +111,7 @@ class BorgProcedure:
         # [verification] value until a survey measures it
         self._corner_sigma_given = "corner_sigma_px" in estimator_config
         estimator_config.setdefault("corner_sigma_px", ver.corner_sigma_px)
+        estimator_config.setdefault("tag_scale_sigma", ver.tag_scale_sigma)
         corner_sigma = float(estimator_config["corner_sigma_px"])
         self.precision = PrecisionTarget(sigma_m=sigma_target_mm * 1e-3 if sigma_target_mm is not None else ver.sigma_target_m,
                                          max_views=max_views if max_views is not None else ver.max_views,
@@ -336,7 +337,8 @@ class BorgProcedure:
 
         tags = {t: (s.structure_T_tag, s.size_m) for t, s in self.model.tags.items() if s.module == "turntable"}
         sol = solve_rig(views, self.rig_geometry, self.intrinsics.dist, tags,
-                        turntable_tags=self.model.turntable.tag_ids, rig_name=self.bench.rig.name)
+                        turntable_tags=self.model.turntable.tag_ids, rig_name=self.bench.rig.name,
+                        tag_scale_sigma=float(self.measure.config.get("tag_scale_sigma", 0.0)))
         self.rig_calibration = sol.calibration
         self._take_corner_sigma(self.measure.config, sol.corner_sigma_px)
         return sol
@@ -449,6 +451,9 @@ class BorgProcedure:
                 truth.insert(key, self._true_cameras[idx])
             elif ch == "t":
                 truth.insert(key, world.borg.structure_T_tag(idx % GENERATION))
+            elif ch == "s":
+                # a tag's print scale: the Jacobians hardly depend on it (1e-3 of their size)
+                truth.insert(key, np.zeros(1))
         tag = tags[0]
         try:
             cov = bound_covariances(graph, truth, [slam.key(tag)])[slam.key(tag)]

@@ -61,7 +61,9 @@ class Measurement:
         self.slam = SfGraphSlam(model, SlamConfig(semantic=self.config.get("semantic", True),
                                                   observation=self.config.get("observation", "corners"),
                                                   corner_sigma_px=float(self.config.get("corner_sigma_px",
-                                                                                        SlamConfig.corner_sigma_px))),
+                                                                                        SlamConfig.corner_sigma_px)),
+                                                  tag_scale_sigma=float(self.config.get("tag_scale_sigma",
+                                                                                        SlamConfig.tag_scale_sigma))),
                                 rig=rig, calibration=calibration, camera=(K, np.asarray(intrinsics.dist, float)))
         self.detector_camera = (np.asarray(K, float), np.asarray(intrinsics.dist, float))
         self.tolerances = Tolerances()
