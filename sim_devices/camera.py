@@ -43,7 +43,7 @@ def encode_frame(img: np.ndarray, jpeg_quality: int) -> tuple[bytes, str]:
     return buf.tobytes(), "image/png"
 
 
-def camera_routes(world: SimWorld, name: str = "camera", frame_path: str = "/frame.png"):
+def camera_routes(world: SimWorld, name: str = "camera", frame_path: str = "/frame.jpg"):
     cam = world.camera
     assert cam is not None
     counter = itertools.count(1)

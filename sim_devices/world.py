@@ -363,7 +363,7 @@ class SimWorld:
             self._print_scale[tid] = 1.0 + imaging.print_scale_sigma * float(np.clip(scale, -4.0, 4.0))
             look = TagLook(gain=1.0 + imaging.lighting_variation * float(light),
                            bow_m=imaging.flatness_m * (1.0 if bow_sign < 0.5 else -1.0), bow_mix=float(mix))
-            if look != TagLook():
+            if look.gain != 1.0 or look.bow_m != 0.0:
                 self._looks[tid] = look
 
     def tag_look(self, tag: int) -> TagLook:
