@@ -319,9 +319,13 @@ def _bowed(X: np.ndarray, Y: np.ndarray, gx: np.ndarray, gy: np.ndarray, K: np.n
     rx = (A[0, 0] * gx + A[0, 1] * gy + A[0, 2]) / ez
     ry = (A[1, 0] * gx + A[1, 1] * gy + A[1, 2]) / ez
     a, b = look.bow_mix / half_m ** 2, (1.0 - look.bow_mix) / half_m ** 2
+    # the shape holds on the card; beyond it (where rays near the plane's horizon meet it kilometres
+    # off) the surface is held at the card edge's height, so the iteration stays bounded there
+    reach = 2.0 * half_m
     x, y = X, Y
     for _ in range(3):
-        z = look.bow_m * (1.0 - a * x * x - b * y * y)
+        cx, cy = np.clip(x, -reach, reach), np.clip(y, -reach, reach)
+        z = look.bow_m * (1.0 - a * cx * cx - b * cy * cy)
         x, y = X + z * rx, Y + z * ry
     return x, y
 
