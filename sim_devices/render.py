@@ -23,15 +23,23 @@ tags with a corner behind the near plane or a face pointing away are skipped):
    edge, an approximation only within a blur width of a cell corner).  A one-cell ring outside the
    quiet zone is transparent, so the same weights give the tag's coverage (alpha) and the
    background shows through in proportion.
-3. Gaussian pixel noise, then 8-bit BGR.
+   A bowed tag (`TagLook.bow_m`) moves each pixel's point from where its ray meets the flat plane
+   to where it meets the bowed surface, before step 2.  The blur is the lens's own, or with a
+   `Defocus` the lens's own combined with the thin lens's circle of confusion at the tag's depth.
+   A tag's black and white levels are times its light (`TagLook.gain`).
+3. The scene's radiance times a gain map (vignetting, the light across the frame), then sensor
+   noise: photon shot noise (variance signal * 255 / full well, grey levels^2) and read noise,
+   then 8-bit BGR.  (JPEG, when the camera sends it, is the camera's: `sim_devices.camera`.)
 
 The background (a grey level, or an image of the frame that is blurred like the tags) is not
 distorted: it is taken to be what the camera sees behind the tags.
 
-Known limitations: no lighting or shading model (the tag's black and white levels are constant),
-no motion blur, no rolling shutter, no occlusion by anything other than other tags, no vignetting;
-a tag partly behind the camera is dropped whole rather than clipped; the blur is applied to each
-tag and not across an occluding tag's outline.
+Known limitations: no shading model beyond a tag's one light level (no glare, no specular
+reflection, no shadows), no motion blur, no rolling shutter, no fixed-pattern noise or hot pixels,
+no occlusion by anything other than other tags; a tag partly behind the camera is dropped whole
+rather than clipped; the blur is applied to each tag at its centre's depth (not per pixel across a
+steeply inclined tag) and not across an occluding tag's outline; the background is blurred by the
+lens's own blur only.
 """
 
 from __future__ import annotations

@@ -18,7 +18,14 @@
   world_T_structure_design(0);
 - the BORG structure (`BorgTruth`): which modules are placed so far (only their tags are seen),
   per-module pose errors, partial deployments, displaced tags;
-- each IPJR's actuator (`sim_devices.ipjr.IpjrActuator`), and the strut it is attached to.
+- each IPJR's actuator (`sim_devices.ipjr.IpjrActuator`), and the strut it is attached to;
+- the camera as it really images (`TrueCamera`, `lab/imaging.py`: the rig's `[sim.camera]` and
+  `[sim.tags]` with the scenario's `[camera]` / `[tags]` keys replacing theirs): the true lens
+  (focal scale, principal point and a distortion that differs from the calibration file by
+  `distortion_error_px` at the frame's corners), its depth of field, vignetting and the light
+  across the frame (one gain map per world), shot and read noise; and every tag as printed and lit:
+  its size off by its print scale (`printed_size_m`: `tags_in_view` gives the size as printed, the
+  pose stays the tag's centre and corners' plane), its bow and its light level (`tag_look`).
 
 Procedures use it in simulation to act as the operator (place a module, attach an IPJR) and to
 score their estimates against the truth.  It never reads anything the drivers compute.
@@ -28,7 +35,9 @@ does not change the others' numbers.
 
 Left out: errors of the Stewart joint positions and leg encoders (the platform's own kinematic
 calibration), the structure's placement on the plate (the structure frame is the plate's), thermal
-drift, and lens distortion error (the calibration file's distortion is the true one)."""
+drift; of the imaging, what `sim_devices/render.py` leaves out (glare, shadows, motion blur, rolling
+shutter, fixed-pattern noise), and light that changes as the structure turns (the light field is
+fixed in the frame, each tag's level fixed per tag)."""
 
 from __future__ import annotations
 
