@@ -23,6 +23,7 @@ import numpy as np
 from lab.errors import UserError
 from lab.geometry import Pose3, from_xyzrpy
 from lab import rig_error as rig_errors   # the record is RigError too, like this module's exception
+from lab.imaging import RIG_CAMERA_KEYS, Imaging, parse_imaging
 
 DeviceKind = Literal["turntable", "stewart", "lift", "camera", "ipjr"]
 
@@ -125,6 +126,7 @@ class SimConfig:
     ipjr: dict[str, float] = field(default_factory=dict)
     lift: dict[str, float] = field(default_factory=dict)
     rig_error: rig_errors.RigError = field(default_factory=rig_errors.RigError)   # the true bench vs this file
+    imaging: Imaging = field(default_factory=Imaging)   # [sim.camera] / [sim.tags] imaging keys (lab/imaging.py)
 
 
 @dataclass(frozen=True)
@@ -520,7 +522,7 @@ _SIM_MAXIMA = {"speed_deg_s": 720.0, "speed_mm_s": 1000.0, "settle_s": 60.0, "mi
                "stroke_margin_mm": 100.0, "volts_noise_v": 1.0, "step_scale_sigma": 0.5, "move_sigma_m": 0.01,
                "calibration_sigma_v": 1.0, "start_extension_m": 1.0}
 MAX_SPEEDUP = 1000.0
-_SIM_CAMERA_KEYS = {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "dist", "pixel_noise", "blur_px"}
+_SIM_CAMERA_KEYS = {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "dist", *RIG_CAMERA_KEYS}
 
 
 def _sim(t: _Table) -> SimConfig:
@@ -542,16 +544,24 @@ def _sim(t: _Table) -> SimConfig:
     camera["cx_px"] = cam.number("cx_px", default=(camera["width_px"] - 1) / 2.0)
     camera["cy_px"] = cam.number("cy_px", default=(camera["height_px"] - 1) / 2.0)
     camera["dist"] = cam.vector("dist", n=None, default=[0.0, 0.0, 0.0, 0.0, 0.0])
-    camera["pixel_noise"] = cam.number("pixel_noise", default=2.0, minimum=0.0)
-    camera["blur_px"] = cam.number("blur_px", default=0.6, minimum=0.0)
+    # the imaging keys (lab/imaging.py): omitted ones are the ideal camera's, as before issue 19
+    given = parse_imaging({k: cam._get(k, None) for k in RIG_CAMERA_KEYS if k in cam.data},
+                          t._get("tags", {}), lambda key, problem: t.error(key, problem),
+                          camera_keys=RIG_CAMERA_KEYS)
     cam.done()
+    imaging = Imaging().with_overrides(given)
+    camera["pixel_noise"], camera["blur_px"] = imaging.pixel_noise, imaging.blur_px
+    f_m = imaging.focal_length_m(camera["fx_px"])
+    if imaging.focus_distance_m and imaging.focus_distance_m < 2 * f_m:
+        raise t.error("camera.focus_distance_m", f"must be 0 (everything in focus) or beyond twice the focal length "
+                                                 f"({2 * f_m:g} m = 2 fx pixel_pitch_um), got {imaging.focus_distance_m}")
     rig_error = rig_errors.parse_rig_error(t._get("rig_error", {}), lambda key, problem: t.error(
         f"rig_error.{key}" if key else "rig_error", problem))
     t.done()
     if not sections["lift"]["min_mm"] < sections["lift"]["max_mm"]:
         raise t.error("lift.max_mm", f"must be greater than lift.min_mm ({sections['lift']['min_mm']} mm)")
     return SimConfig(seed, speedup, borg_n, pty, sections["turntable"], sections["stewart"], camera,
-                     sections["ipjr"], sections["lift"], rig_error)
+                     sections["ipjr"], sections["lift"], rig_error, imaging)
 
 
 # --------------------------------------------------------------------------------------------
