@@ -36,7 +36,8 @@ import gtsam
 import numpy as np
 
 from estimation.fiducials import tag_object_points
-from estimation.rig_model import (AXIS, BASE, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry,
+from estimation.rig_model import (AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT,
+                                  RigGeometry, distortion_prior_sigmas, radial_basis,
                                   ViewMotion, cal3_s2, chain_factor, corner_factor, nees, side_ratio, tag_prior_noise,
                                   undistort_px)
 from lab.geometry import Pose3, Rot3, to_xyzrpy
@@ -218,12 +219,13 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
     tag_poses = {t: est.atPose3(T(t)) for t in sorted(seen & tt)}
     tag_covs = {t: marg.marginalCovariance(T(t)) for t in tag_poses}
     # the run's prior is this joint covariance, not the marginals (lab/rig_calibration.py)
-    joint = marg.jointMarginalCovariance(gtsam.KeyVector([AXIS, BASE, MOUNT, INTRINSICS,
+    joint = marg.jointMarginalCovariance(gtsam.KeyVector([AXIS, BASE, MOUNT, INTRINSICS, DISTORTION,
                                                           *(T(t) for t in tag_poses)])).fullMatrix()
     residuals = _residuals(views, est, K_und, dist, tags)
     calibration = RigCalibration(est.atPose3(MOUNT), est.atPose3(BASE), est.atPose3(AXIS), K, cov, tag_poses,
                                  tag_covs, float(np.sqrt(np.mean(residuals ** 2))) if residuals.size else float("nan"),
-                                 n_views, rig_name, joint_covariance=0.5 * (joint + joint.T), corner_sigma_px=sigma)
+                                 n_views, rig_name, joint_covariance=0.5 * (joint + joint.T), corner_sigma_px=sigma,
+                                 distortion_correction=tuple(float(x) for x in est.atVector(DISTORTION)))
     problems = conditioning_problems(calibration, views, limits)
     return RigSolution(calibration, residuals, problems, {"world_T_base": B0, "platform_T_camera": M0},
                        opt.iterations(), dropped, sigma, glue)
@@ -295,6 +297,10 @@ def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, 
     graph.add(gtsam.PriorFactorCal3_S2(INTRINSICS, cal3_s2(K0), gtsam.noiseModel.Diagonal.Sigmas(np.array(
         [cfg.focal_sigma * f, cfg.focal_sigma * f, 1e-6, cfg.principal_point_sigma_px, cfg.principal_point_sigma_px]))))
     values.insert(INTRINSICS, cal3_s2(K0))
+    # the lens: the camera file's distortion is known to [calibration] distortion_sigma_px at the corners
+    graph.add(gtsam.PriorFactorVector(DISTORTION, np.zeros(2), gtsam.noiseModel.Diagonal.Sigmas(
+        distortion_prior_sigmas(cfg.distortion_sigma_px, K0))))
+    values.insert(DISTORTION, np.zeros(2))
     tt = set(turntable_tags)
     seen: set[int] = set()
     n_views = 0
@@ -318,9 +324,10 @@ def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, 
                                                       gtsam.noiseModel.Isotropic.Sigma(1, tag_scale_sigma)))
                     values.insert(S(s.tag_id), np.zeros(1))
             sk = S(s.tag_id) if s.tag_id in tt and tag_scale_sigma > 0 else None
-            graph.add(corner_factor(C(k), T(s.tag_id), undistort_px(s.corners_px, K_und, dist),
-                                    tag_object_points(size), corner_sigma_px * (scale or {}).get((k, s.tag_id), 1.0),
-                                    scale_key=sk))
+            u = undistort_px(s.corners_px, K_und, dist)
+            graph.add(corner_factor(C(k), T(s.tag_id), u, tag_object_points(size),
+                                    corner_sigma_px * (scale or {}).get((k, s.tag_id), 1.0), scale_key=sk,
+                                    distortion=(DISTORTION, radial_basis(u, K_und))))
     if start is not None:
         values = gtsam.Values(start)
     return graph, values, seen, n_views
@@ -341,6 +348,8 @@ def _residuals(views: Sequence[CalibrationView], est: gtsam.Values, K_und: np.nd
                 continue
             pose = est.atPose3(T(s.tag_id))
             meas = undistort_px(s.corners_px, K_und, dist)
+            if est.exists(DISTORTION):
+                meas = meas + (radial_basis(meas, K_und) @ est.atVector(DISTORTION)).reshape(4, 2)
             w = (scale or {}).get((k, s.tag_id), 1.0)
             printed = 1.0 + float(est.atVector(S(s.tag_id))[0]) if est.exists(S(s.tag_id)) else 1.0
             for p, m in zip(printed * tag_object_points(tags[s.tag_id][1]), meas):

@@ -33,6 +33,7 @@ the calibration is fixed by the turntable tags and the modules already tied.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -44,6 +45,8 @@ from lab.geometry import Pose3, Rot3, from_xyzrpy
 from lab.rig_calibration import RigCalibration
 
 AXIS, BASE, MOUNT, INTRINSICS, LIFT = (gtsam.symbol(c, 0) for c in "abmkl")
+# the true lens's radial distortion against the camera file's: (dk1, dk2), a 2-vector variable
+DISTORTION = gtsam.symbol("d", 0)
 _E_RZ = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
 GAUGE_SIGMA = 1e-7
 
@@ -213,16 +216,40 @@ def cal3_s2(K: np.ndarray) -> gtsam.Cal3_S2:
     return gtsam.Cal3_S2(float(K[0, 0]), float(K[1, 1]), float(K[0, 1]), float(K[0, 2]), float(K[1, 2]))
 
 
+def radial_basis(corners_px: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(8, 2): how the four undistorted corners move per unit of (dk1, dk2), the true lens's radial
+    terms minus the camera file's.  To first order an undistorted point through the file's model
+    is off the true one by -f x_n (dk1 r^2 + dk2 r^4) (x_n, r normalised, from the corner itself)."""
+    u = np.asarray(corners_px, float).reshape(4, 2)
+    f = np.array([K[0, 0], K[1, 1]])
+    xn = (u - np.array([K[0, 2], K[1, 2]])) / f
+    r2 = np.sum(xn ** 2, axis=1, keepdims=True)
+    G = np.zeros((8, 2))
+    G[:, 0] = (-f * xn * r2).ravel()
+    G[:, 1] = (-f * xn * r2 ** 2).ravel()
+    return G
+
+
+def distortion_prior_sigmas(sigma_px: float, K: np.ndarray) -> np.ndarray:
+    """Prior sigmas of (dk1, dk2) that move a point at the frame's corner by `sigma_px` each (the
+    corner taken where the principal point is the frame's centre)."""
+    rc = math.hypot(K[0, 2] / K[0, 0], K[1, 2] / K[1, 1])
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    return np.array([sigma_px / (f * rc ** 3), sigma_px / (f * rc ** 5)])
+
+
 def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_corners_m: np.ndarray,
                   sigma_px: float, intrinsics_key: int = INTRINSICS,
                   robust_k: float | None = 3.0, fixed: gtsam.Cal3_S2 | None = None,
-                  scale_key: int | None = None) -> gtsam.CustomFactor:
+                  scale_key: int | None = None, distortion: tuple[int, np.ndarray] | None = None) -> gtsam.CustomFactor:
     """Reprojection error (8-vector, px) of a tag's four corners.  `corners_px`: (4, 2)
     undistorted measurements in pixels of the nominal pinhole; `tag_corners_m`: (4, 3) the
     corners in the tag frame, in the same order.  With `fixed` intrinsics the factor is on the
     camera and the tag only (a run: the intrinsics come from the rig calibration).  With
     `scale_key` the tag as printed is (1 + s) times its nominal size, s a 1-vector variable (a
-    printer's scale error moves a tag seen from one side along the line of sight by s x distance)."""
+    printer's scale error moves a tag seen from one side along the line of sight by s x distance).
+    With `distortion` = (key, radial_basis(corners)) the measured corners are corrected by the
+    lens's radial distortion error, a 2-vector variable shared by every sighting."""
     meas = np.asarray(corners_px, dtype=float).reshape(4, 2)
     local = [np.asarray(p, dtype=float) for p in tag_corners_m]
     noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(8, sigma_px)
@@ -235,6 +262,8 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
         cam = gtsam.PinholeCameraCal3_S2(C, fixed if fixed is not None else values.atCal3_S2(intrinsics_key))
         k = 1.0 + float(values.atVector(scale_key)[0]) if scale_key is not None else 1.0
         e = np.zeros(8)
+        if distortion is not None:
+            e -= distortion[1] @ values.atVector(distortion[0])
         JC, JT, JK, JS = np.zeros((8, 6)), np.zeros((8, 6)), np.zeros((8, 5)), np.zeros((8, 1))
         Hp, Hl = np.zeros((3, 6), order="F"), np.zeros((3, 3), order="F")
         Dp, Dpt, Dk = np.zeros((2, 6), order="F"), np.zeros((2, 3), order="F"), np.zeros((2, 5), order="F")
@@ -245,7 +274,7 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
             except RuntimeError:          # behind the camera: a large, flat error
                 e[2 * i:2 * i + 2] = 1e3
                 continue
-            e[2 * i:2 * i + 2] = uv - meas[i]
+            e[2 * i:2 * i + 2] += uv - meas[i]
             JC[2 * i:2 * i + 2] = Dp
             JT[2 * i:2 * i + 2] = Dpt @ Hp
             JK[2 * i:2 * i + 2] = Dk
@@ -254,13 +283,19 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
             jacobians[0], jacobians[1] = JC, JT
             if fixed is None:
                 jacobians[2] = JK
+            j = 2 if fixed is not None else 3
             if scale_key is not None:
-                jacobians[-1] = JS
+                jacobians[j] = JS
+                j += 1
+            if distortion is not None:
+                jacobians[j] = -distortion[1]
         return e
 
     keys = [camera_key, tag_key] if fixed is not None else [camera_key, tag_key, intrinsics_key]
     if scale_key is not None:
         keys.append(scale_key)
+    if distortion is not None:
+        keys.append(distortion[0])
     return gtsam.CustomFactor(noise, keys, error)
 
 

@@ -38,8 +38,8 @@ import numpy as np
 
 from estimation.corner_noise import CornerNoise, measured_corner_noise
 from estimation.fiducials import Detection, tag_object_points
-from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
-                                  chain_factor, corner_factor, side_ratio, tag_prior_noise, undistort_px)
+from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
+                                  chain_factor, corner_factor, distortion_prior_sigmas, radial_basis, side_ratio, tag_prior_noise, undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.geometry import Pose3, Rot3
 from lab.rig_calibration import RigCalibration
@@ -184,9 +184,10 @@ class SfGraphSlam:
         would count once per tag."""
         means, _ = rig.priors(cal)
         blocks = cal.joint_blocks()
-        tags = [int(name) for name, _ in blocks[4:]]
-        keys = [AXIS, BASE, MOUNT, INTRINSICS] + [self.key(t) for t in tags]
-        values = [means[AXIS], means[BASE], means[MOUNT], cal3_s2(cal.K)] + [cal.turntable_tags[t] for t in tags]
+        tags = [int(name) for name, _ in blocks[5:]]
+        keys = [AXIS, BASE, MOUNT, INTRINSICS, DISTORTION] + [self.key(t) for t in tags]
+        values = ([means[AXIS], means[BASE], means[MOUNT], cal3_s2(cal.K), np.array(cal.distortion_correction, float)]
+                  + [cal.turntable_tags[t] for t in tags])
         at = np.cumsum([0] + [size for _, size in blocks])
         cov = np.array(cal.joint_covariance, float)
         # the axis frame's yaw and height are gauge (rig_model.RigGeometry.priors)
@@ -248,6 +249,17 @@ class SfGraphSlam:
     def key(self, tag: int) -> int:
         return _T(tag + GENERATION * self.generation.get(tag, 0))
 
+    def _distortion_key(self) -> bool:
+        """The lens's radial distortion error: from the survey's joint prior, else a prior of the
+        rig's [calibration] distortion_sigma_px at the frame's corners (first corner factor)."""
+        assert self.rig is not None and self.camera is not None
+        if not self.initial.exists(DISTORTION):
+            f = gtsam.PriorFactorVector(DISTORTION, np.zeros(2), gtsam.noiseModel.Diagonal.Sigmas(
+                distortion_prior_sigmas(self.rig.config.distortion_sigma_px, self.camera[0])))
+            self._add(f, ("as_is", f))
+            self._value(DISTORTION, np.zeros(2))
+        return True
+
     def _scale_key(self, tag: int) -> int:
         """The tag's print scale variable (one per printed tag, so a re-placed module keeps it),
         with its prior the first time the tag is seen."""
@@ -304,14 +316,18 @@ class SfGraphSlam:
                     continue
                 scale = ratio ** -OBLIQUE_EXPONENT
             sk = self._scale_key(d.tag_id) if c.observation == "corners" and c.tag_scale_sigma > 0 else None
-            spec = ("corners", C(k), self.key(d.tag_id), d.size_m, scale, sk)
+            lens = None
             if c.observation == "corners":
                 assert self.camera is not None
                 K, dist = self.camera
-                self._add(corner_factor(C(k), self.key(d.tag_id), undistort_px(d.corners_px, K, dist),
-                                        tag_object_points(d.size_m), c.corner_sigma_px * scale,
+                u = undistort_px(d.corners_px, K, dist)
+                if self.rig is not None and self._distortion_key():
+                    lens = (DISTORTION, radial_basis(u, K))
+            spec = ("corners", C(k), self.key(d.tag_id), d.size_m, scale, sk, lens)
+            if c.observation == "corners":
+                self._add(corner_factor(C(k), self.key(d.tag_id), u, tag_object_points(d.size_m), c.corner_sigma_px * scale,
                                         robust_k=_robust_k(8) if c.huber_k else None, fixed=self._cal,
-                                        scale_key=sk), spec)
+                                        scale_key=sk, distortion=lens), spec)
                 self._corner_factors.append((self.graph.size() - 1, scale))
             else:
                 if c.observation == "corner-info":
@@ -446,10 +462,11 @@ class SfGraphSlam:
                 assert self.rig is not None
                 g.add(chain_factor(self.rig, spec[1], spec[2], chain_noise(spec[1]) if chain_noise else None))
             elif kind == "corners":
-                _, ck, tk, size, scale, sk = spec
+                _, ck, tk, size, scale, sk, lens = spec
                 # the measurement is irrelevant to the covariance; only the Jacobians at the truth count
+                # (the lens's basis, read at the corners as measured, moves by < 1 px at the truth)
                 g.add(corner_factor(ck, tk, np.zeros((4, 2)), tag_object_points(size), corner_sigma_px * scale,
-                                    robust_k=None, fixed=self._cal, scale_key=sk))
+                                    robust_k=None, fixed=self._cal, scale_key=sk, distortion=lens))
         return g
 
     def _marginal(self, tag: int) -> np.ndarray | None:

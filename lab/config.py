@@ -145,6 +145,9 @@ class CalibrationConfig:
     turntable_tag_sigma_m: float = 0.001
     focal_sigma: float = 0.01                 # relative
     principal_point_sigma_px: float = 5.0
+    # how far the camera file's radial distortion may be from the true lens, as the displacement at
+    # the frame's corners: the graph estimates the difference (two radial terms) with this prior
+    distortion_sigma_px: float = 0.5
     stewart_repeatability_m: float = 0.00002
     stewart_repeatability_rad: float = math.radians(0.002)
     turntable_repeatability_rad: float = math.radians(0.005)
@@ -212,6 +215,7 @@ _CALIBRATION_KEYS = (
     ("turntable_tag_sigma_mm", 1.0, 1e-3, "turntable_tag_sigma_m"),
     ("focal_sigma_percent", 1.0, 1e-2, "focal_sigma"),
     ("principal_point_sigma_px", 5.0, 1.0, "principal_point_sigma_px"),
+    ("distortion_sigma_px", 0.5, 1.0, "distortion_sigma_px"),
     ("stewart_repeatability_mm", 0.02, 1e-3, "stewart_repeatability_m"),
     ("stewart_repeatability_deg", 0.002, math.pi / 180, "stewart_repeatability_rad"),
     ("turntable_repeatability_deg", 0.005, math.pi / 180, "turntable_repeatability_rad"),

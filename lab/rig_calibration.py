@@ -14,7 +14,7 @@ turntable tags together, so their errors are correlated (the tags' glue errors m
 all define; a shift of the base trades against a shift of the mount; the focal length against
 the distance to everything).  `joint_covariance` keeps the whole covariance over `JOINT_POSES`
 (6x6 blocks in the same tangent order), the intrinsics (5: fx, fy, skew, cx, cy, GTSAM's Cal3_S2),
-then each turntable tag in id order (6 each), and a run takes it as one prior: twelve tags'
+the lens's radial distortion correction (2: dk1, dk2), then each turntable tag in id order (6 each), and a run takes it as one prior: twelve tags'
 marginals used as independent priors count the frame's common error twelve times (a module's
 1-sigma 3x too small), and intrinsics held exact hide the focal length's share.
 """
@@ -55,6 +55,8 @@ class RigCalibration:
     joint_covariance: np.ndarray | None = None
     # the face-on corner noise the survey's residuals implied: a run's graph starts from it
     corner_sigma_px: float = float("nan")
+    # the true lens's radial terms minus the camera file's (dk1, dk2), as the survey found them
+    distortion_correction: tuple[float, float] = (0.0, 0.0)
 
     def joint_blocks(self) -> tuple[tuple[str | int, int], ...]:
         """What the joint covariance's blocks are, in order, with their sizes."""
@@ -81,6 +83,7 @@ class RigCalibration:
             "format": FORMAT, "rig": self.rig, "created": self.created or time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "views": self.views, "rms_px": self.rms_px,
             **({"corner_sigma_px": self.corner_sigma_px} if math.isfinite(self.corner_sigma_px) else {}),
+            "distortion_correction": [float(x) for x in self.distortion_correction],
             **{name: pose(getattr(self, name), self.covariance[name]) for name in POSES},
             "camera": {"fx_px": float(self.K[0, 0]), "fy_px": float(self.K[1, 1]), "cx_px": float(self.K[0, 2]),
                        "cy_px": float(self.K[1, 2]), "covariance": np.asarray(self.covariance["K"], float).tolist()},
@@ -100,7 +103,8 @@ class RigCalibration:
 
 
 def joint_blocks(turntable_tags: Any) -> tuple[tuple[str | int, int], ...]:
-    return (*((name, 6) for name in JOINT_POSES), ("K", 5), *((int(t), 6) for t in sorted(turntable_tags)))
+    return (*((name, 6) for name in JOINT_POSES), ("K", 5), ("distortion", 2),
+            *((int(t), 6) for t in sorted(turntable_tags)))
 
 
 def _pose(d: Any, where: str, src: str) -> tuple[Pose3, np.ndarray | None]:
@@ -160,6 +164,13 @@ def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
         tags[tid], c = _pose(v, f"turntable_tags.{k}", p)
         if c is not None:
             tag_covs[tid] = c
+    try:
+        dk = tuple(float(x) for x in data.get("distortion_correction", (0.0, 0.0)))
+        if len(dk) != 2 or not all(map(math.isfinite, dk)):
+            raise ValueError
+    except (TypeError, ValueError):
+        raise UserError(f"rig calibration {p}: distortion_correction: expected [dk1, dk2], got "
+                        f"{data.get('distortion_correction')!r}") from None
     corner_sigma = float("nan")
     if "corner_sigma_px" in data:
         try:
@@ -181,4 +192,4 @@ def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
                             f"(the rig poses, the intrinsics and {len(tags)} turntable tags)") from None
     return RigCalibration(poses["platform_T_camera"], poses["world_T_base"], poses["world_T_axis"], K, covs, tags,
                           tag_covs, float(data.get("rms_px", float("nan"))), int(data.get("views", 0)),
-                          str(data.get("rig", "")), str(data.get("created", "")), joint, corner_sigma)
+                          str(data.get("rig", "")), str(data.get("created", "")), joint, corner_sigma, dk)

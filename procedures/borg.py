@@ -451,6 +451,8 @@ class BorgProcedure:
                 truth.insert(key, self._true_cameras[idx])
             elif ch == "t":
                 truth.insert(key, world.borg.structure_T_tag(idx % GENERATION))
+            elif ch == "d":
+                truth.insert(key, np.zeros(2))   # the lens correction enters linearly: any value
             elif ch == "s":
                 # a tag's print scale: the Jacobians hardly depend on it (1e-3 of their size)
                 truth.insert(key, np.zeros(1))

@@ -78,11 +78,11 @@ def test_perfect_glue_is_measured_near_zero_and_floored():
 def _calibration(joint: np.ndarray) -> RigCalibration:
     means, _ = GEOM.priors(None)
     tags = {t: MODEL.tags[t].structure_T_tag for t in TT}
-    n = 18 + 5 + 6 * len(TT)
+    n = 18 + 5 + 2 + 6 * len(TT)
     assert joint.shape == (n, n)
     marg = {"world_T_axis": joint[:6, :6], "world_T_base": joint[6:12, 6:12], "platform_T_camera": joint[12:18, 12:18],
             "K": joint[np.ix_([18, 19, 21, 22], [18, 19, 21, 22])]}
-    covs = {t: joint[23 + 6 * i:29 + 6 * i, 23 + 6 * i:29 + 6 * i] for i, t in enumerate(TT)}
+    covs = {t: joint[25 + 6 * i:31 + 6 * i, 25 + 6 * i:31 + 6 * i] for i, t in enumerate(TT)}
     return RigCalibration(means[MOUNT], means[BASE], means[AXIS], K, marg, tags, covs, 0.05, 10, "sim",
                           joint_covariance=joint, corner_sigma_px=0.05)
 
@@ -90,14 +90,15 @@ def _calibration(joint: np.ndarray) -> RigCalibration:
 def _correlated_joint(seed: int = 0) -> np.ndarray:
     """A joint covariance in which every turntable tag shares one frame error (the glue's common mode)."""
     rng = np.random.default_rng(seed)
-    n = 18 + 5 + 6 * len(TT)
+    n = 18 + 5 + 2 + 6 * len(TT)
     A = rng.normal(size=(n, n)) * 1e-4
     cov = A @ A.T + np.eye(n) * 1e-8
-    common = rng.normal(size=6) * 3e-4
+    common = rng.normal(size=6) * 1e-3
     for i in range(len(TT)):
         for j in range(len(TT)):
-            cov[23 + 6 * i:29 + 6 * i, 23 + 6 * j:29 + 6 * j] += np.outer(common, common)
+            cov[25 + 6 * i:31 + 6 * i, 25 + 6 * j:31 + 6 * j] += np.outer(common, common)
     cov[18:23, 18:23] += np.diag([1.0, 1.0, 1e-8, 0.25, 0.25])      # fx, fy (px^2), skew, cx, cy
+    cov[23:25, 23:25] += np.diag([1e-6, 1e-7])                      # the lens's dk1, dk2
     for i in (2, 5):                  # the axis frame's yaw and height are gauge (RigGeometry.priors)
         cov[i, :] = cov[:, i] = 0.0
         cov[i, i] = GAUGE_SIGMA ** 2
@@ -111,11 +112,11 @@ def test_the_run_graph_carries_the_surveys_joint_posterior():
     slam.update()
     keys = [BASE, MOUNT, INTRINSICS, slam.key(TT[0]), slam.key(TT[5])]
     got = gtsam.Marginals(slam.graph, slam.estimate).jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
-    idx = np.r_[6:23, 23:29, 23 + 30:29 + 30]
+    idx = np.r_[6:23, 25:31, 25 + 30:31 + 30]
     assert np.allclose(got, joint[np.ix_(idx, idx)], rtol=1e-6, atol=1e-12)
     # the tags' common error survives as a correlation (independent priors would zero it)
     assert np.linalg.norm(got[17:23, 23:29]) > 0.3 * np.linalg.norm(got[17:23, 17:23])
-    assert np.allclose(slam.tag_covariance(TT[5]), joint[53:59, 53:59], rtol=1e-6, atol=1e-12)
+    assert np.allclose(slam.tag_covariance(TT[5]), joint[55:61, 55:61], rtol=1e-6, atol=1e-12)
 
 
 def test_the_joint_posterior_and_the_measured_corner_sigma_round_trip_through_the_calibration_file():

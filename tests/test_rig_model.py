@@ -192,3 +192,35 @@ def _analytic_sized(factor, values: gtsam.Values, sizes: dict[int, int]) -> list
         out.append(A[:, col:col + d])
         col += d
     return out
+
+
+def test_corner_factor_corrects_the_lenss_radial_distortion_error():
+    """Corners undistorted through a camera file whose k1, k2 are off by (dk1, dk2) reproject
+    through the factor's correction to first order, and its Jacobian is the basis."""
+    import cv2
+
+    from estimation.rig_model import DISTORTION, distortion_prior_sigmas, radial_basis, undistort_px
+
+    v = gtsam.Values()
+    cam = Pose3()
+    tag = Pose3(Rot3.Rx(np.pi), np.array([1.3, 0.7, 2.0]))      # facing the camera, near the frame's corner
+    v.insert(C, cam)
+    v.insert(T, tag)
+    local = tag_object_points(0.1)
+    file_dist = np.array([-0.05, 0.01, 0.0, 0.0, 0.0])
+    dk = distortion_prior_sigmas(0.3, K)            # a lens 0.3 px off at the corners in each term
+    true_dist = file_dist + np.r_[dk, 0.0, 0.0, 0.0]
+    pts = np.array([cam.transformTo(tag.transformFrom(p)) for p in local])
+    raw, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, true_dist)
+    meas = undistort_px(raw.reshape(4, 2), K, file_dist)
+    v.insert(DISTORTION, np.zeros(2))
+    f0 = corner_factor(C, T, meas, local, 0.1, robust_k=None, fixed=cal3_s2(K),
+                       distortion=(DISTORTION, radial_basis(meas, K)))
+    assert list(f0.keys()) == [C, T, DISTORTION]
+    before = np.abs(f0.unwhitenedError(v)).max()
+    v.update(DISTORTION, np.r_[dk])
+    after = np.abs(f0.unwhitenedError(v)).max()
+    assert before > 0.05 and after < 0.1 * before
+    for key, J in zip(f0.keys(), _analytic_sized(f0, v, {DISTORTION: 2})):
+        d = 2 if key == DISTORTION else 6
+        assert J * 0.1 == pytest.approx(_numerical(f0, v, key, d, eps=1e-8 if d == 2 else 1e-6), rel=1e-3, abs=1e-2)
