@@ -34,7 +34,7 @@ import os
 import time
 
 from procedures.studies.bench_common import save_figure
-from procedures.studies.fiducial_scenes import _camera, tag_pose_on_ray, twenty_tag_frames
+from procedures.studies.fiducial_scenes import _camera, random_tag_pose, tag_pose_on_ray, twenty_tag_frames
 
 DISTANCES_M = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 MAX_VIEW_ANGLE_DEG = 60.0
@@ -53,24 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="tag poses per distance (default 200, --quick 40)")
 
 
-# ---- the camera and the scene -------------------------------------------------------------------
-def random_tag_pose(rng, K, width: int, height: int, distance_m: float, size_m: float,
-                    max_angle_rad: float = math.radians(MAX_VIEW_ANGLE_DEG)):
-    """camera_T_tag for a tag at `distance_m` from the camera, somewhere in the image (kept a tag's
-    width from the border), seen `angle` off its normal with a random turn about the normal."""
-    import numpy as np
-
-    margin = 1.2 * K[0, 0] * size_m / distance_m
-    u = rng.uniform(margin, width - 1 - margin)
-    v = rng.uniform(margin, height - 1 - margin)
-    ray = np.linalg.solve(K, [u, v, 1.0])
-    ray /= np.linalg.norm(ray)
-    angle = math.acos(rng.uniform(math.cos(max_angle_rad), 1.0))  # uniform over the spherical cap
-    phi = rng.uniform(0, 2 * math.pi)
-    psi = rng.uniform(0, 2 * math.pi)
-    return tag_pose_on_ray(ray, distance_m, angle, phi, psi), angle
-
-
+# ---- the camera and the scene (random_tag_pose, tag_pose_on_ray: fiducial_scenes) ----------------
 def _ippe_solutions(K, dist, corners, size_m):
     import cv2
     import numpy as np
