@@ -18,7 +18,9 @@ barrel distortion, 2 grey levels of noise, 0.6 px blur) with the BORG tag (10 cm
   give), counted as wrong only when the two solutions differ by more than 1 deg and the other one
   was the closer to the truth;
 - covariance honesty: the normalised error e' S^-1 e of each pose against the detector's own
-  covariance (6 on average if the covariance is right; larger means over-confident).
+  covariance (6 on average if the covariance is right; larger means over-confident);
+- image quality: edge spread across the tags' borders and noise in flat areas, the photographs
+  against the default simulated frames (`image_quality`, `bench_fiducials_photos.quality_study`).
 
 Writes fiducials.json, fiducials.md and PNG plots to --out (default bench_out/fiducials) and prints
 the Markdown (or the JSON with --json).  Top-level imports stay light: the CLI imports this module
@@ -195,6 +197,8 @@ def _markdown(res: dict, command: str) -> str:
     lines.append("")
     lines += corners.markdown(res["corners"], res["tilt"])
     lines.append("")
+    lines += photos.quality_markdown(res["image_quality"])
+    lines.append("")
     lines.append(f"Single-view pose error, {acc['tag_size_m'] * 100:.0f} cm tag anywhere in view, 0-{acc['max_view_angle_deg']:.0f} deg "
                  "off its normal; wrong IPPE solution = the other solution was the closer to the truth "
                  f"(only pairs differing by > {DIFFERENT_SOLUTIONS_DEG:.0f} deg count); prediction = truth disturbed by "
@@ -255,7 +259,8 @@ def run(args: argparse.Namespace) -> int:
            "tilt": corners.tilt_study(20 if quick else 100, seed),
            "photos": photos.photo_study(quick),
            "rendered": photos.render_study(2 if quick else 8, seed),
-           "accuracy": accuracy_study(trials, seed)}
+           "accuracy": accuracy_study(trials, seed),
+           "image_quality": photos.quality_study(quick)}
     res["elapsed_s"] = time.perf_counter() - t0
     md = _markdown(res, command)
     plots = _plots(res, out_dir)
