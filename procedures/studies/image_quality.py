@@ -141,13 +141,21 @@ def fit_edge_spread(s: np.ndarray, values: np.ndarray, *,
     p = r.x
     rms = float(np.sqrt(np.mean(r.fun ** 2)))
     return EdgeFit(float(p[3]), float(p[2]), float(p[0]), float(p[1]), rms, len(s),
-                   _halo(s - p[2], v, float(p[0]), float(p[1])))
+                   _halo(s - p[2], v, float(p[0]), float(p[1]), far_step_px[0] if far else np.inf))
 
 
-def _halo(s: np.ndarray, v: np.ndarray, dark: float, bright: float, reach_px: float = 2.0,
-          bin_px: float = 0.5, min_per_bin: int = 4) -> float:
+def _halo(s: np.ndarray, v: np.ndarray, dark: float, bright: float, bright_until: float = np.inf,
+          reach_px: float = 2.0, bin_px: float = 0.5, min_per_bin: int = 4) -> float:
     """Largest excursion of the binned profile beyond the dark (before the edge) or the bright
-    level (after it), within `reach_px`, as a fraction of bright - dark."""
+    level (after it), within `reach_px`, as a fraction of bright - dark.  The levels are the
+    plateaus' medians beyond `reach_px` where there are samples there (the fit's levels lean
+    towards an overshoot), else the fit's."""
+    far_dark = s < -reach_px - 0.5
+    far_bright = (s > reach_px + 0.5) & (s < bright_until)
+    if far_dark.sum() >= 5:
+        dark = float(np.median(v[far_dark]))
+    if far_bright.sum() >= 5:
+        bright = float(np.median(v[far_bright]))
     worst = 0.0
     edges = np.arange(-reach_px, reach_px + 1e-9, bin_px)
     for lo in edges[:-1]:
