@@ -86,6 +86,7 @@ class RigSolution:
     oblique_dropped: int = 0               # sightings left out as too oblique (min_side_ratio)
     corner_sigma_px: float = float("nan")  # the corner noise the final pass used (measured)
     turntable_tag_sigma_m: float = float("nan")  # the turntable tags' glue scatter the final pass used (measured)
+    tag_scale_sigma: float = float("nan")        # the tags' apparent scale scatter the final pass used (measured)
 
     @property
     def ok(self) -> bool:
@@ -207,6 +208,8 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
         if measure_corner_sigma and k + 1 < passes:
             sigma = _measured_corner_sigma(views, est, K_und, dist, tags, sigma, scale)
             glue = _measured_glue_sigma(graph, est, tags, set(turntable_tags) & seen, glue)
+            if tag_scale_sigma > 0:
+                tag_scale_sigma = _measured_scale_sigma(graph, est, set(turntable_tags) & seen, tag_scale_sigma)
     assert est is not None
     marg = gtsam.Marginals(graph, est)
     cal = est.atCal3_S2(INTRINSICS)
@@ -225,10 +228,11 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
     calibration = RigCalibration(est.atPose3(MOUNT), est.atPose3(BASE), est.atPose3(AXIS), K, cov, tag_poses,
                                  tag_covs, float(np.sqrt(np.mean(residuals ** 2))) if residuals.size else float("nan"),
                                  n_views, rig_name, joint_covariance=0.5 * (joint + joint.T), corner_sigma_px=sigma,
-                                 distortion_correction=tuple(float(x) for x in est.atVector(DISTORTION)))
+                                 distortion_correction=tuple(float(x) for x in est.atVector(DISTORTION)),
+                                 tag_scale_sigma=tag_scale_sigma if tag_scale_sigma > 0 else float("nan"))
     problems = conditioning_problems(calibration, views, limits)
     return RigSolution(calibration, residuals, problems, {"world_T_base": B0, "platform_T_camera": M0},
-                       opt.iterations(), dropped, sigma, glue)
+                       opt.iterations(), dropped, sigma, glue, tag_scale_sigma)
 
 
 def _measured_corner_sigma(views, est, K_und, dist, tags, sigma, scale) -> float:
@@ -273,6 +277,28 @@ def _measured_glue_sigma(graph: gtsam.NonlinearFactorGraph, est: gtsam.Values, t
     if r <= 0.5:
         return sigma_m
     return max(GLUE_SIGMA_FLOOR_M, sigma_m * math.sqrt(vpv / r))
+
+
+# a tag's apparent scale is never taken as known better than this (relative)
+SCALE_SIGMA_FLOOR = 1e-4
+
+
+def _measured_scale_sigma(graph: gtsam.NonlinearFactorGraph, est: gtsam.Values, turntable_tags: set[int],
+                          sigma: float) -> float:
+    """The scatter of the tags' apparent scale, as the turntable tags show it (variance component
+    estimation of the scale group, as for the glue).  What a view reads as a tag's size is its
+    print scale times the detector's own scale bias, which grows with blur (a blurred black square
+    reads a little small or large, alike in every view of it): residuals cannot show either, a
+    scale variable can, and its prior must be as wide as the two together."""
+    tags = [t for t in sorted(turntable_tags) if est.exists(S(t))]
+    if not tags:
+        return sigma
+    marg = gtsam.Marginals(graph, est)
+    vpv = sum(float(est.atVector(S(t))[0]) ** 2 for t in tags) / sigma ** 2
+    r = sum(1.0 - float(marg.marginalCovariance(S(t))[0, 0]) / sigma ** 2 for t in tags)
+    if r <= 0.5:
+        return sigma
+    return max(SCALE_SIGMA_FLOOR, sigma * math.sqrt(vpv / r))
 
 
 def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, means, covs, B0, M0, start,

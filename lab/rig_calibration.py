@@ -57,6 +57,8 @@ class RigCalibration:
     corner_sigma_px: float = float("nan")
     # the true lens's radial terms minus the camera file's (dk1, dk2), as the survey found them
     distortion_correction: tuple[float, float] = (0.0, 0.0)
+    # the scatter of the tags' apparent scale (print and detector), as the survey measured it
+    tag_scale_sigma: float = float("nan")
 
     def joint_blocks(self) -> tuple[tuple[str | int, int], ...]:
         """What the joint covariance's blocks are, in order, with their sizes."""
@@ -84,6 +86,7 @@ class RigCalibration:
             "views": self.views, "rms_px": self.rms_px,
             **({"corner_sigma_px": self.corner_sigma_px} if math.isfinite(self.corner_sigma_px) else {}),
             "distortion_correction": [float(x) for x in self.distortion_correction],
+            **({"tag_scale_sigma": self.tag_scale_sigma} if math.isfinite(self.tag_scale_sigma) else {}),
             **{name: pose(getattr(self, name), self.covariance[name]) for name in POSES},
             "camera": {"fx_px": float(self.K[0, 0]), "fy_px": float(self.K[1, 1]), "cx_px": float(self.K[0, 2]),
                        "cy_px": float(self.K[1, 2]), "covariance": np.asarray(self.covariance["K"], float).tolist()},
@@ -180,6 +183,15 @@ def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
         except (TypeError, ValueError):
             raise UserError(f"rig calibration {p}: corner_sigma_px: expected a number in (0, 5] px, "
                             f"got {data['corner_sigma_px']!r}") from None
+    tag_scale = float("nan")
+    if "tag_scale_sigma" in data:
+        try:
+            tag_scale = float(data["tag_scale_sigma"])
+            if not (math.isfinite(tag_scale) and 0 < tag_scale <= 0.05):
+                raise ValueError
+        except (TypeError, ValueError):
+            raise UserError(f"rig calibration {p}: tag_scale_sigma: expected a number in (0, 0.05], "
+                            f"got {data['tag_scale_sigma']!r}") from None
     joint = None
     if "joint_covariance" in data:
         n = sum(size for _, size in joint_blocks(tags))
@@ -192,4 +204,4 @@ def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
                             f"(the rig poses, the intrinsics and {len(tags)} turntable tags)") from None
     return RigCalibration(poses["platform_T_camera"], poses["world_T_base"], poses["world_T_axis"], K, covs, tags,
                           tag_covs, float(data.get("rms_px", float("nan"))), int(data.get("views", 0)),
-                          str(data.get("rig", "")), str(data.get("created", "")), joint, corner_sigma, dk)
+                          str(data.get("rig", "")), str(data.get("created", "")), joint, corner_sigma, dk, tag_scale)

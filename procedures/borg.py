@@ -110,6 +110,7 @@ class BorgProcedure:
         # the graph's corner noise: as given, else what the rig calibration measured, else the rig's
         # [verification] value until a survey measures it
         self._corner_sigma_given = "corner_sigma_px" in estimator_config
+        self._tag_scale_given = "tag_scale_sigma" in estimator_config
         estimator_config.setdefault("corner_sigma_px", ver.corner_sigma_px)
         estimator_config.setdefault("tag_scale_sigma", ver.tag_scale_sigma)
         corner_sigma = float(estimator_config["corner_sigma_px"])
@@ -136,7 +137,8 @@ class BorgProcedure:
             from lab.rig_calibration import load_rig_calibration
 
             self.rig_calibration = load_rig_calibration(cal_file)
-            self._take_corner_sigma(estimator_config, self.rig_calibration.corner_sigma_px)
+            self._take_measured(estimator_config, self.rig_calibration.corner_sigma_px,
+                                self.rig_calibration.tag_scale_sigma)
         self.rig_survey = (self.rig_calibration is None) if rig_survey is None else bool(rig_survey)
         self.uncalibrated = uncalibrated
         if uncalibrated:
@@ -340,12 +342,15 @@ class BorgProcedure:
                         turntable_tags=self.model.turntable.tag_ids, rig_name=self.bench.rig.name,
                         tag_scale_sigma=float(self.measure.config.get("tag_scale_sigma", 0.0)))
         self.rig_calibration = sol.calibration
-        self._take_corner_sigma(self.measure.config, sol.corner_sigma_px)
+        self._take_measured(self.measure.config, sol.corner_sigma_px, sol.tag_scale_sigma)
         return sol
 
-    def _take_corner_sigma(self, config: dict[str, Any], measured_px: float) -> None:
-        if not self._corner_sigma_given and math.isfinite(measured_px):
-            config["corner_sigma_px"] = float(measured_px)
+    def _take_measured(self, config: dict[str, Any], corner_sigma_px: float, tag_scale_sigma: float) -> None:
+        """What the rig survey measured replaces the rig file's assumptions (unless given)."""
+        if not self._corner_sigma_given and math.isfinite(corner_sigma_px):
+            config["corner_sigma_px"] = float(corner_sigma_px)
+        if not self._tag_scale_given and math.isfinite(tag_scale_sigma) and config.get("tag_scale_sigma", 0) > 0:
+            config["tag_scale_sigma"] = float(tag_scale_sigma)
 
     def _rig_model(self):
         return None if self.uncalibrated else self.rig_geometry
@@ -357,7 +362,8 @@ class BorgProcedure:
         out: dict[str, Any] = {"views": sol.calibration.views, "rms_px": sol.calibration.rms_px,
                                "problems": list(sol.problems), "estimate": describe(sol.calibration),
                                "measured": {"corner_sigma_px": sol.corner_sigma_px,
-                                            "turntable_tag_sigma_m": sol.turntable_tag_sigma_m}}
+                                            "turntable_tag_sigma_m": sol.turntable_tag_sigma_m,
+                                            "tag_scale_sigma": sol.tag_scale_sigma}}
         if self.bench.simulated:
             out["truth_error"], out["nees"] = against_truth(sol.calibration, self.bench.sim.world)
         return out
