@@ -39,7 +39,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -200,8 +200,11 @@ def _axis_weights(f: np.ndarray, inv_g: np.ndarray, table, k: int) -> np.ndarray
 
 
 def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: np.ndarray, dist: np.ndarray,
-              tag_id: int, size_m: float, M: np.ndarray, black: float, white: float, blur: float) -> None:
-    """Composite one tag into `img` (grey levels, float32), in place."""
+              tag_id: int, size_m: float, M: np.ndarray, black: float, white: float, blur: float,
+              depth: np.ndarray | None = None) -> None:
+    """Composite one tag into `img` (grey levels, float32), in place; with `depth`, also keep the
+    tag plane's depth (m along the optical axis) where the tag covers more than half a pixel and is
+    nearer than what `depth` holds."""
     height, width = img.shape
     R, t = M[:3, :3], M[:3, 3]
     cells = _marker_cells(tag_id)                          # (n, n): quiet zone + black square
@@ -281,6 +284,13 @@ def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: n
     roi = img[y0:y1, x0:x1]
     roi *= 1.0 - acc_a
     roi += acc_s
+    if depth is not None:   # the ray through each ideal pixel meets the tag plane n.X = n.t at this z
+        n_ = R[:, 2]
+        ray = n_[0] * (gx - K[0, 2]) / K[0, 0] + n_[1] * (gy - K[1, 2]) / K[1, 1] + n_[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where((acc_a > 0.5) & (ray * float(n_ @ t) > 0), float(n_ @ t) / ray, np.inf)
+        droi = depth[y0:y1, x0:x1]
+        np.minimum(droi, z.astype(np.float32), out=droi)
 
 
 def render_grey(
@@ -294,10 +304,13 @@ def render_grey(
     black_level: float = 25.0,
     white_level: float = 225.0,
     blur_sigma_px: float = 0.6,
+    depth: np.ndarray | None = None,
 ) -> np.ndarray:
     """The noise-free image `render_tags` starts from, in grey levels, before noise and rounding to
     8 bits: (height, width) float32.  Studies use it to tell the sensor's quantisation from the
-    rest."""
+    rest.  `depth`: a (height, width) float32 array the caller filled with +inf; each tag drawn
+    writes its plane's depth (m along the optical axis) where it covers more than half a pixel,
+    the nearest kept (what `sim_devices.render_truss` tests the truss against)."""
     K = np.asarray(K, dtype=float).reshape(3, 3)
     if width <= 0 or height <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
@@ -333,7 +346,7 @@ def render_grey(
         visible.append((float(np.linalg.norm(t)), int(tag_id), float(size_m), M))
 
     for _, tag_id, size_m, M in sorted(visible, key=lambda v: -v[0]):
-        _draw_tag(img, ideal, K, d, tag_id, size_m, M, black_level, white_level, blur_sigma_px)
+        _draw_tag(img, ideal, K, d, tag_id, size_m, M, black_level, white_level, blur_sigma_px, depth)
     return img
 
 
@@ -350,17 +363,23 @@ def render_tags(
     blur_sigma_px: float = 0.6,
     noise_sigma: float = 2.0,
     rng: np.random.Generator | None = None,
+    overlay: Callable[[np.ndarray, np.ndarray], None] | None = None,
 ) -> np.ndarray:
     """Render AprilTag 36h11 tags seen by a camera.
 
     K: 3x3 intrinsics; dist: OpenCV distortion coefficients (k1, k2, p1, p2[, k3...]) or None;
     tags: (tag id, black-square edge in m, camera_T_tag) with the tag frame x right, y up, z out of
     the face.  background: a gray level (0-255) or an image of the frame's size.  noise_sigma is in
-    gray levels; blur_sigma_px is the defocus blur (Gaussian sigma, px).  Returns an
-    (height, width, 3) uint8 BGR image.
+    gray levels; blur_sigma_px is the defocus blur (Gaussian sigma, px).  `overlay(grey, depth)`,
+    if given, draws more of the scene (the truss: `sim_devices.render_truss`) into the noise-free
+    grey image in place, against the tags' depth buffer (`render_grey`), before the noise.
+    Returns an (height, width, 3) uint8 BGR image.
     """
+    depth = None if overlay is None else np.full((height, width), np.inf, np.float32)
     img = render_grey(K, dist, width, height, tags, background=background, black_level=black_level,
-                      white_level=white_level, blur_sigma_px=blur_sigma_px)
+                      white_level=white_level, blur_sigma_px=blur_sigma_px, depth=depth)
+    if overlay is not None:
+        overlay(img, depth)
     if noise_sigma > 0:
         g = rng if rng is not None else np.random.default_rng()
         # cv2.randn is ~4x faster than numpy's normal for a full frame; seeding it from `rng`

@@ -49,6 +49,11 @@ from lab.structures.borg import BorgModel, build_borg
 from sim_devices.ipjr import IpjrActuator
 from sim_devices.motion import Axis
 from sim_devices.stewart import platform_pose
+from sim_devices.truss_geometry import TrussOccluders, in_camera, truss_occluders
+
+# The lab's lamp: the direction towards it in the world frame (above the structure, on the
+# camera's side); it shades the truss's struts and nodes (sim_devices.render_truss).
+LIGHT_WORLD = np.array([-0.45, 0.25, 0.86]) / np.linalg.norm([-0.45, 0.25, 0.86])
 
 # Independent random streams (the k in default_rng([seed, k])).
 _STREAM_CAMERA, _STREAM_TT_TAGS, _STREAM_MOTION, _STREAM_LIFT, _STREAM_IPJR = 1, 2, 3, 4, 100
@@ -200,6 +205,14 @@ class BorgTruth:
         if tag in self._tag_fix:
             T = self._tag_fix[tag].compose(T)
         return T
+
+    def truss(self) -> TrussOccluders:
+        """The struts and node bodies of the modules placed so far, where they really are
+        (structure frame; `sim_devices.truss_geometry`)."""
+        with self._lock:
+            placed = list(self.placed)
+            return truss_occluders(self.model, placed, {n: self.structure_T_module(n) for n in placed},
+                                   {n: self.deployed_height_m(n) for n in placed})
 
     def visible_tag_ids(self) -> list[int]:
         """Tags that exist right now: the turntable's and those of placed modules."""
@@ -389,13 +402,12 @@ class SimWorld:
         """(id, size, camera_T_tag) of every tag that exists now (the renderer culls the rest)."""
         if self.borg is None:
             return []
-        camera_T_world = self.world_T_camera().inverse()
-        world_T_structure = self.world_T_structure()
-        out = []
-        for tid in self.borg.visible_tag_ids():
-            spec = self.borg.model.tags[tid]
-            out.append((tid, spec.size_m, camera_T_world.compose(world_T_structure).compose(self.borg.structure_T_tag(tid))))
-        return out
+        return self._tags_seen_from(self.world_T_camera().inverse().compose(self.world_T_structure()))
+
+    def _tags_seen_from(self, camera_T_structure: Pose3) -> list[tuple[int, float, Pose3]]:
+        assert self.borg is not None
+        return [(tid, self.borg.model.tags[tid].size_m, camera_T_structure.compose(self.borg.structure_T_tag(tid)))
+                for tid in self.borg.visible_tag_ids()]
 
     def reseed_camera(self, seed: Any) -> None:
         """Restart the camera's noise stream (e.g. from [seed, stream, step, view]), so that a
@@ -408,14 +420,27 @@ class SimWorld:
             self._tt_repeat = self._stewart_repeat = self._lift_repeat = None
 
     def render(self) -> np.ndarray:
-        """The image the camera sees now (BGR uint8)."""
+        """The image the camera sees now (BGR uint8): the tags that exist, and the truss built so
+        far in front of and behind them (always: a real camera cannot look through struts)."""
         from sim_devices.render import render_tags
+        from sim_devices.render_truss import draw_truss
 
         cam = self.camera
         if cam is None:
             raise UserError(f"rig {self.rig.name!r} has no camera")
         with self._lock:
             rng = np.random.default_rng(self._camera_rng.integers(2**63))
-        return render_tags(cam.K, cam.dist, cam.width_px, cam.height_px, self.tags_in_view(),
-                           blur_sigma_px=cam.blur_px, noise_sigma=cam.pixel_noise, rng=rng)
+        if self.borg is None:
+            return render_tags(cam.K, cam.dist, cam.width_px, cam.height_px, [],
+                               blur_sigma_px=cam.blur_px, noise_sigma=cam.pixel_noise, rng=rng)
+        camera_T_world = self.world_T_camera().inverse()
+        camera_T_structure = camera_T_world.compose(self.world_T_structure())
+        truss = in_camera(self.borg.truss(), camera_T_structure)
+        light = camera_T_world.rotation().matrix() @ LIGHT_WORLD
+
+        def overlay(grey: np.ndarray, depth: np.ndarray) -> None:
+            draw_truss(grey, depth, cam.K, cam.dist, truss, blur_sigma_px=cam.blur_px, light_camera=light)
+
+        return render_tags(cam.K, cam.dist, cam.width_px, cam.height_px, self._tags_seen_from(camera_T_structure),
+                           blur_sigma_px=cam.blur_px, noise_sigma=cam.pixel_noise, rng=rng, overlay=overlay)
 
