@@ -71,6 +71,9 @@ class DetectorConfig:
     max_edge_rms_px: float = 0.3      # row crossings about each fitted edge: a straight, clean edge
     max_corner_shift_px: float = 3.5  # from aruco's quad (or 20 % of the side, if larger): its
                                       # unrefined corners are up to ~3 px off on small photographed tags
+    max_occluded_share: float = 0.5   # of an edge's rows found occluded (something in front of the
+                                      # tag crossing it: tag_quads, docs/fiducials.md); the fit uses the
+                                      # rest, and a tag with an edge hidden more than this is dropped
 
 
 @lru_cache(maxsize=64)
@@ -207,6 +210,7 @@ class TagDetector:
         shift = np.max(np.linalg.norm(fit.corners - quads, axis=2), axis=1)
         with np.errstate(invalid="ignore"):
             return (fit.edges_fitted.all(axis=1)
+                    & (fit.occluded <= cfg.max_occluded_share).all(axis=1)
                     & (np.nanmax(np.where(fit.edges_fitted, fit.rms_px, np.inf), axis=1) <= cfg.max_edge_rms_px)
                     & (shift <= np.maximum(cfg.max_corner_shift_px, 0.2 * side)))
 

@@ -52,6 +52,18 @@ COARSE_BELOW_CELL_PX = 4.5  # tags with smaller cells start with a coarse pass
 SHARPEN = 0.25            # Laplacian sharpening of the cell samples before reading bits (AprilTag's default)
 CONVERGED_PX = 0.1        # a fine pass that moved no corner more than this ends a quad's refinement
 EDGE_LEVELS_MIN_CELL_PX = 4.0   # smaller cells: an edge's dark/bright levels are its tag's
+# Occlusion (docs/fiducials.md): a row is left out as occluded when its window's end samples differ
+# from its edge's medians by more than OCCLUSION_TOLERANCE of the edge's contrast, or (cells of
+# OCCLUSION_MIN_CELL_PX or more) its quiet zone darkens by more than OCCLUSION_MAX_DROP of the tag's
+# contrast just past the window; a whole edge, when its contrast at the windows' ends is below
+# OCCLUSION_MIN_CONTRAST of the tag's; and OCCLUSION_GUARD_ROWS rows either side go with each.
+OCCLUSION_TOLERANCE = 0.15
+OCCLUSION_MIN_CELL_PX = 3.5
+OCCLUSION_MAX_DROP = 0.2
+OCCLUSION_FAR_PX = 1.0
+OCCLUSION_DROP_MIN_CELL_PX = 4.5
+OCCLUSION_MIN_CONTRAST = 0.8
+OCCLUSION_GUARD_ROWS = 3
 
 
 @dataclass(frozen=True)
@@ -60,6 +72,7 @@ class QuadFit:
     edges_fitted: np.ndarray   # (N, 4) bool: edge i (corner i -> i+1) was refitted
     rms_px: np.ndarray         # (N, 4) rms of the row crossings about each fitted line (nan if not fitted)
     corner_sigma_px: np.ndarray  # (N, 4) each corner's standard error from its two lines' fits (nan: unfitted)
+    occluded: np.ndarray = None  # (N, 4) share of each edge's rows left out as occluded (the last pass's)
 
 
 def _lines_from_corners(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -90,8 +103,9 @@ def _bilinear(g: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
             + (flat[i + W] * (1 - fx) + flat[i + W + 1] * fx) * fy)
 
 
-def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None, coarse: bool
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None, coarse: bool,
+              check: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One pass over every edge of every quad: each edge as a line (point, unit direction) in ideal
     pinhole pixels (image pixels without `camera`), whether it was fitted, the rms of its crossings
     about it (px), and its fit's statistics for `_corner_sigma` (N, 4, 3).  `coarse`: find each row's crossing as the steepest dark-to-bright step
@@ -134,7 +148,7 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     count = np.maximum(r_hi - r_lo + 1, 0).astype(np.int64).ravel()
     edge_of = np.repeat(np.arange(E), count)
     if edge_of.size == 0:   # quads too small for a single row clear of their corners
-        return p_in, d_in, np.zeros((N, 4), bool), np.full((N, 4), np.nan), np.zeros((N, 4, 3))
+        return p_in, d_in, np.zeros((N, 4), bool), np.full((N, 4), np.nan), np.zeros((N, 4, 3)), np.zeros((N, 4))
     start = np.repeat(np.cumsum(count) - count, count)
     r = r_lo.ravel()[edge_of] + (np.arange(edge_of.size) - start)
     slope = ((qs - ps) / np.where(qr != pr, qr - pr, np.nan)).ravel()
@@ -161,18 +175,48 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     bright_side = (s_pix - s_line[:, None]) * sgn[:, None] > 0
     row_ok = np.all(inside | (wgt == 0) | bright_side, axis=1) & np.isfinite(s_line)
     vals = flat[np.clip(y, 0, H - 1) * W + np.clip(x, 0, W - 1)].astype(np.float64)
-    # dark and bright levels of each edge: half a cell inside (the black border) and outside (the
-    # quiet zone) along the normal, averaged over the edge's rows
+    # dark and bright levels of each edge: the image at the window's two ends (`reach` from the
+    # line along the normal), the median over the edge's rows.  Sampled there rather than deeper
+    # into the border and the quiet zone, an edge's levels see nothing the windows do not: a strut
+    # or a background over the outer quiet zone cannot bias the crossings through the levels; and
+    # for a symmetric blur the two ends sit symmetrically on the edge's profile, so their mid-level
+    # is the edge's even where the profile has not flattened out yet.
     n_img = n_out.reshape(-1, 2)[edge_of]
     on_line = np.where(use_rows, np.column_stack([s_line, r]), np.column_stack([r, s_line]))
-    half_cell = (0.5 * cell).ravel()[edge_of][:, None]
-    p_dark = on_line - half_cell * n_img
-    p_bright = on_line + half_cell * n_img
+    reach_e = reach.ravel()[edge_of][:, None]
+    p_dark = on_line - reach_e * n_img
+    p_bright = on_line + reach_e * n_img
     in_img = lambda p: (p[:, 0] >= 0) & (p[:, 0] <= W - 1) & (p[:, 1] >= 0) & (p[:, 1] <= H - 1)  # noqa: E731
-    lvl_ok = (in_img(p_dark) & in_img(p_bright) & np.isfinite(s_line)).astype(np.float64)
-    n_lvl = np.bincount(edge_of, weights=lvl_ok, minlength=E)
-    sum_dark = np.bincount(edge_of, lvl_ok * _bilinear(grey, p_dark[:, 0], p_dark[:, 1]), E)
-    sum_bright = np.bincount(edge_of, lvl_ok * _bilinear(grey, p_bright[:, 0], p_bright[:, 1]), E)
+    lvl_ok = in_img(p_dark) & in_img(p_bright) & np.isfinite(s_line)
+    v_dark = _bilinear(grey, p_dark[:, 0], p_dark[:, 1])
+    v_bright = _bilinear(grey, p_bright[:, 0], p_bright[:, 1])
+    # rows where something lies over the window (a strut in front of the tag crossing the edge):
+    # left out of the levels and of the fit, with their neighbours
+    dark_m, bright_m, bad = _odd_rows(edge_of, v_dark, v_bright, lvl_ok, E)
+    chk = np.zeros(E, bool) if check is None else np.repeat(np.asarray(check, bool), 4)
+    chk &= cell.ravel() >= OCCLUSION_MIN_CELL_PX
+    bad &= chk[edge_of]
+    if chk.any():
+        # Something over the quiet zone all along an edge (a strut parallel to it) looks to the test
+        # above like a narrow quiet zone, and the windows then reach into it.  Against the tag's own
+        # black and white (its cells): an edge whose contrast at the window's ends falls short, or
+        # a row whose quiet zone darkens again just past its window, is occluded.  Only where cells
+        # are OCCLUSION_MIN_CELL_PX or more: on smaller tags a sharp quiet zone is a few pixels of
+        # blur, and photographed tags' own margins fail these tests (docs/fiducials.md).
+        t_dark, t_bright = np.full(N, np.nan), np.full(N, np.nan)
+        quads = np.flatnonzero(chk.reshape(N, 4).any(axis=1))
+        t_dark[quads], t_bright[quads] = _tag_levels(grey, q[quads])
+        c_tag = np.repeat(t_bright - t_dark, 4)
+        far = np.minimum(reach + OCCLUSION_FAR_PX, 0.75 * cell).ravel()[edge_of][:, None]
+        p_far = on_line + far * n_img
+        v_far = _bilinear(grey, p_far[:, 0], p_far[:, 1])
+        with np.errstate(invalid="ignore"):
+            drop_chk = chk & (cell.ravel() >= OCCLUSION_DROP_MIN_CELL_PX)
+            bad |= drop_chk[edge_of] & lvl_ok & in_img(p_far) & (v_bright - v_far > OCCLUSION_MAX_DROP * c_tag[edge_of])
+            short = chk & (bright_m - dark_m < OCCLUSION_MIN_CONTRAST * c_tag)
+        bad |= short[edge_of] & lvl_ok
+    occluded = _dilate(bad, edge_of, OCCLUSION_GUARD_ROWS)
+    n_lvl = np.bincount(edge_of, weights=(lvl_ok & ~occluded).astype(np.float64), minlength=E)
     # small cells put those samples inside the blur of the edge itself, and an edge along the image
     # border has none: such edges take their tag's levels, the two clusters of its cells' centres
     own = (n_lvl >= MIN_ROWS) & (cell.ravel() >= EDGE_LEVELS_MIN_CELL_PX)
@@ -180,9 +224,8 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     need = ~own.reshape(N, 4).all(axis=1)
     if need.any():
         tag_dark[need], tag_bright[need] = _tag_levels(grey, q[need])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        dark = np.where(own, sum_dark / n_lvl, np.repeat(tag_dark, 4))
-        bright = np.where(own, sum_bright / n_lvl, np.repeat(tag_bright, 4))
+    dark = np.where(own, dark_m, np.repeat(tag_dark, 4))
+    bright = np.where(own, bright_m, np.repeat(tag_bright, 4))
     contrast = bright - dark
     with np.errstate(invalid="ignore", divide="ignore"):
         # an edge without contrast gives NaN, never inf (its rows are dropped below)
@@ -205,6 +248,7 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
         cross = np.where(sgn > 0, s_line + Ae - bright_len, s_line - Ae + bright_len)
     row_ok &= np.abs(cross - s_line) <= Ae                             # the crossing lies within its window
     row_ok &= (contrast >= MIN_CONTRAST)[edge_of]
+    row_ok &= ~occluded
 
     # the crossings as image points, then straight lines through them where straight lines are
     # straight: in the ideal pinhole image when the lens is known
@@ -240,7 +284,44 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     n = np.bincount(edge_of, w, E)
     r_eff = np.maximum(rms * np.sqrt(n / np.maximum(n - 2, 1)), 0.02)
     stats = np.stack([r_eff, n, var_t], axis=1).reshape(N, 4, 3)
-    return p, d, fitted, np.where(fitted, rms.reshape(N, 4), np.nan), stats
+    n_rows = np.bincount(edge_of, lvl_ok, E)
+    occ_frac = np.bincount(edge_of, occluded & lvl_ok, E) / np.maximum(n_rows, 1)
+    return p, d, fitted, np.where(fitted, rms.reshape(N, 4), np.nan), stats, occ_frac.reshape(N, 4)
+
+
+def _odd_rows(edge_of: np.ndarray, v_dark: np.ndarray, v_bright: np.ndarray, ok: np.ndarray,
+              n_edges: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each edge's median dark and bright samples (over its rows with both in the image; NaN for
+    fewer than MIN_ROWS), and its rows whose samples differ from those medians by more than
+    OCCLUSION_TOLERANCE of the contrast: something in front of the tag (or a stain, a shadow's
+    edge) crosses the edge there."""
+    R = len(edge_of)
+    cnt = np.bincount(edge_of, ok, n_edges).astype(np.int64)
+    rows = np.bincount(edge_of, minlength=n_edges)
+    start = np.cumsum(rows) - rows
+    med = []
+    for v in (v_dark, v_bright):
+        order = np.lexsort((v, ~ok, edge_of))          # per edge: its usable rows first, by value
+        m = v[order[np.clip(start + np.maximum(cnt - 1, 0) // 2, 0, max(R - 1, 0))]] if R else np.zeros(n_edges)
+        med.append(np.where(cnt >= MIN_ROWS, m, np.nan))
+    dark_m, bright_m = med
+    if R == 0:
+        return dark_m, bright_m, np.zeros(0, bool)
+    tol = (OCCLUSION_TOLERANCE * (bright_m - dark_m))[edge_of]
+    with np.errstate(invalid="ignore"):
+        bad = ok & (tol > 0) & ((np.abs(v_dark - dark_m[edge_of]) > tol) | (np.abs(v_bright - bright_m[edge_of]) > tol))
+    return dark_m, bright_m, bad
+
+
+def _dilate(bad: np.ndarray, edge_of: np.ndarray, k_max: int) -> np.ndarray:
+    """`bad` rows and the `k_max` rows either side of each on the same edge (an occluder's blurred
+    outline reaches past the rows it covers)."""
+    out = bad.copy()
+    for k in range(1, min(k_max, len(bad) - 1) + 1):
+        same = edge_of[k:] == edge_of[:-k]
+        out[:-k] |= bad[k:] & same
+        out[k:] |= bad[:-k] & same
+    return out
 
 
 def _corner_sigma(p: np.ndarray, d: np.ndarray, corners: np.ndarray, stats: np.ndarray) -> np.ndarray:
@@ -326,15 +407,17 @@ def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.
     N = len(q)
     rms = np.full((N, 4), np.nan)
     sigma = np.full((N, 4), np.nan)
+    occluded = np.zeros((N, 4))
     fitted_any = np.zeros((N, 4), bool)
     cur = q.copy()
     side = np.linalg.norm(np.roll(q, -1, axis=1) - q, axis=2).min(axis=1) if N else np.zeros(0)
     coarse_first = side / CELLS < COARSE_BELOW_CELL_PX
     active = np.ones(N, bool)
 
-    def step(idx: np.ndarray, coarse: bool) -> np.ndarray:
+    def step(idx: np.ndarray, coarse: bool, check: np.ndarray | None = None) -> np.ndarray:
         """One pass over the quads `idx`; how far each one's corners moved."""
-        p, d, fitted, rms_pass, stats = _fit_pass(g, cur[idx], camera, coarse)
+        p, d, fitted, rms_pass, stats, occ_pass = _fit_pass(g, cur[idx], camera, coarse, check)
+        occluded[idx] = occ_pass
         rms[idx] = np.where(fitted, rms_pass, rms[idx])
         fitted_any[idx] |= fitted
         ideal = _intersect(p, d)
@@ -351,14 +434,20 @@ def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.
 
     if coarse_first.any():
         step(np.flatnonzero(coarse_first), True)
-    for _ in range(passes):
+    # rows crossed by an occluder are looked for from the second fine pass on, once the windows sit
+    # on the edges (before that a line pixels off makes every row look odd): a quad converged in its
+    # first pass gets a second one
+    checked = np.zeros(N, bool)
+    for _ in range(max(passes, 2)):
         idx = np.flatnonzero(active)
         if len(idx) == 0:
             break
-        moved = step(idx, False)
-        active[idx[moved < CONVERGED_PX]] = False     # converged: the fine pass contracts the error 10-1000x
+        check = checked[idx].copy()
+        moved = step(idx, False, check)
+        checked[idx] = True
+        active[idx[(moved < CONVERGED_PX) & check]] = False   # converged: the fine pass contracts the error 10-1000x
     fitted = fitted_any
-    return QuadFit(cur, fitted, rms, sigma)
+    return QuadFit(cur, fitted, rms, sigma, occluded)
 
 
 @lru_cache(maxsize=4)
