@@ -37,7 +37,7 @@ from typing import Callable, Mapping, Sequence
 import cv2
 import numpy as np
 
-from estimation.tag_quads import code_bits, fit_quads, identify, read_bits
+from estimation.tag_quads import code_bits, fit_quads, identify, read_bits, ring_deviation
 from lab.geometry import Pose3, Rot3
 
 __all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges",
@@ -74,6 +74,11 @@ class DetectorConfig:
     max_occluded_share: float = 0.5   # of an edge's rows found occluded (something in front of the
                                       # tag crossing it: tag_quads, docs/fiducials.md); the fit uses the
                                       # rest, and a tag with an edge hidden more than this is dropped
+    # The lab's tags have a one-cell white quiet zone: its whole ring must read white and the black
+    # border's ring black (within this fraction of the tag's contrast), or something is in front
+    # of the tag (a strut) and the tag is dropped (`tag_quads.ring_deviation`).  None: no such
+    # check (tags printed without a full margin, photographs of other people's tags).
+    max_ring_deviation: float | None = 0.35
 
 
 @lru_cache(maxsize=64)
@@ -181,13 +186,21 @@ class TagDetector:
             good = errors <= cfg.max_bit_errors
             found_ids += [int(t) for t in tid[good]]
             found.append(rolled[good])
-        return found_ids, np.concatenate(found).reshape(-1, 4, 2)
+        corners = np.concatenate(found).reshape(-1, 4, 2)
+        if cfg.max_ring_deviation is not None and len(corners):
+            clear = ring_deviation(grey, corners) <= cfg.max_ring_deviation
+            found_ids = [t for t, c in zip(found_ids, clear) if c]
+            corners = corners[clear]
+        return found_ids, corners
 
     def refine(self, grey: np.ndarray, ids: Sequence[int], quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Edge-fitted corners of quads of known ids and whether each passed every check."""
         fit = fit_quads(grey, quads, (self.K, self.dist))
         errors = self._bit_errors(grey, fit.corners, quads, ids)
-        return fit.corners, self._fit_ok(fit, quads) & (errors <= self.config.max_bit_errors)
+        ok = self._fit_ok(fit, quads) & (errors <= self.config.max_bit_errors)
+        if self.config.max_ring_deviation is not None and len(quads):
+            ok &= ring_deviation(grey, fit.corners) <= self.config.max_ring_deviation
+        return fit.corners, ok
 
     def _bit_errors(self, grey: np.ndarray, refined: np.ndarray, quads: np.ndarray, ids: Sequence[int]) -> np.ndarray:
         """Cells (of 64) that disagree with each id's pattern, read from the refined quad or from

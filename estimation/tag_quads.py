@@ -39,7 +39,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-__all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "identify", "MIN_ROWS"]
+__all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "identify", "ring_deviation", "MIN_ROWS"]
 
 CELLS = 8                 # AprilTag 36h11: 6x6 data cells inside a one-cell black border
 MIN_ROWS = 3              # an edge needs this many usable rows (or columns) to be refitted
@@ -64,6 +64,8 @@ OCCLUSION_FAR_PX = 1.0
 OCCLUSION_DROP_MIN_CELL_PX = 4.5
 OCCLUSION_MIN_CONTRAST = 0.8
 OCCLUSION_GUARD_ROWS = 3
+RING_MIN_CELL_PX = 3.0         # ... on the sides whose cells are at least this wide
+RING_DEPTHS_CELLS = (0.5,)  # the perimeter check's samples, from the black square's edge (`ring_deviation`)
 
 
 @dataclass(frozen=True)
@@ -597,3 +599,57 @@ def identify(grey: np.ndarray, quads: np.ndarray, codes: np.ndarray, allowed: np
         best_id = np.where(better, allowed[j], best_id)
         best_q[better] = qr[better]
     return best_id, best_q, best_err
+
+
+@lru_cache(maxsize=1)
+def _ring_points() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit-square points (u right, v down; the black square is 0..1) a quarter cell apart along
+    the black border and along the quiet zone, at RING_DEPTHS_CELLS from the black square's edge
+    (inwards for the border, outwards for the quiet zone, whose run goes on past the corners);
+    whether each is a quiet-zone point; and the side it samples (0 top, 1 right, 2 bottom, 3 left:
+    edge i runs from corner i to corner i + 1)."""
+    pts, quiet, side = [], [], []
+    for outward, sign in ((False, -1.0), (True, 1.0)):
+        for depth in RING_DEPTHS_CELLS:
+            off = sign * depth / CELLS                        # from the edge, in unit-square units
+            reach = (CELLS / 2 + (depth if outward else -depth)) / CELLS
+            s = np.arange(-reach, reach + 1e-9, 0.25 / CELLS) + 0.5
+            for e in range(4):   # top (v = 0), right (u = 1), bottom (v = 1), left (u = 0)
+                line = np.full_like(s, (0.0, 1.0, 1.0, 0.0)[e] + (-off, off, off, -off)[e])
+                uv = np.column_stack([s, line]) if e in (0, 2) else np.column_stack([line, s])
+                pts.append(uv)
+                quiet.append(np.full(len(s), outward))
+                side.append(np.full(len(s), e))
+    p = np.concatenate(pts)
+    return np.column_stack([p, np.ones(len(p))]), np.concatenate(quiet), np.concatenate(side)
+
+
+def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """How far each tag's black border and white quiet zone stray from its own black and white,
+    along the whole perimeter (N,): the largest shortfall of a sample, as a fraction of the
+    tag's contrast (the two clusters of its 64 cells' centres).  A clean tag reads ~0; something
+    in front of it crossing the border or the quiet zone (a strut), a quiet zone narrower than a
+    cell or a shadow's edge reads more.  Points a quarter cell apart along the ring, at
+    RING_DEPTHS_CELLS from the black square's edge on either side, those in the image (a tag may
+    run off the frame) on sides whose cells are at least RING_MIN_CELL_PX across (on a tag seen
+    very obliquely, the blur of a cell's two edges meets in its middle); quads (N, 4, 2), corner 0
+    the marker's top-left."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    if len(q) == 0:
+        return np.zeros(0)
+    uv1, quiet, side = _ring_points()
+    pts = _unit_square_to_quads(q, uv1)
+    H, W = np.shape(grey)
+    v = _bilinear(np.asarray(grey, dtype=np.float32), pts[..., 0], pts[..., 1])
+    inside = (pts[..., 0] >= 0) & (pts[..., 0] <= W - 1) & (pts[..., 1] >= 0) & (pts[..., 1] <= H - 1)
+    # each side's cell across it: the adjacent sides' extent along its normal, over 8
+    seg = np.roll(q, -1, axis=1) - q
+    u = seg / np.linalg.norm(seg, axis=2, keepdims=True)
+    n_out = np.stack([u[..., 1], -u[..., 0]], axis=2)
+    across = np.minimum(np.abs(np.sum(np.roll(seg, 1, axis=1) * n_out, axis=2)),
+                        np.abs(np.sum(np.roll(seg, -1, axis=1) * n_out, axis=2))) / CELLS     # (N, 4)
+    inside &= across[:, side] >= RING_MIN_CELL_PX
+    dark, bright = _tag_levels(grey, q)
+    contrast = np.maximum(bright - dark, 1e-6)[:, None]
+    short = np.where(quiet[None, :], bright[:, None] - v, v - dark[:, None]) / contrast
+    return np.where(inside, short, -np.inf).max(axis=1, initial=0.0)

@@ -294,7 +294,11 @@ def _strut_pixels(cam: _Camera, A, B, a_clipped, b_clipped, r: float, light, ran
     hw = (half / np.maximum(cos_m, 0.5))[sr]
     m0 = np.maximum(np.floor(centre - hw), 0).astype(np.int64)
     m1_ = np.minimum(np.ceil(centre + hw), n_minor[sr] - 1).astype(np.int64)
-    counts = np.maximum(m1_ - m0 + 1, 0)
+    counts = m1_ - m0 + 1
+    live = np.flatnonzero(counts > 0)                       # scan lines that cross the frame
+    if live.size == 0:
+        return _empty()
+    sr, cmaj, m0, m1_, counts = sr[live], cmaj[live], m0[live], m1_[live], counts[live]
     # Each scan line's pixels are consecutive along its minor axis; the ideal-pinhole position is
     # taken as linear along that short run (from the line's middle pixel and its neighbours: the
     # lens' curvature over ten pixels moves it by ~0.01 px), so every per-pixel quantity below is
