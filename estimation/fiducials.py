@@ -74,11 +74,14 @@ class DetectorConfig:
     max_occluded_share: float = 0.5   # of an edge's rows found occluded (something in front of the
                                       # tag crossing it: tag_quads, docs/fiducials.md); the fit uses the
                                       # rest, and a tag with an edge hidden more than this is dropped
-    # The lab's tags have a one-cell white quiet zone: its whole ring must read white and the black
-    # border's ring black (within this fraction of the tag's contrast), or something is in front
-    # of the tag (a strut) and the tag is dropped (`tag_quads.ring_deviation`).  None: no such
-    # check (tags printed without a full margin, photographs of other people's tags).
-    max_ring_deviation: float | None = 0.35
+    # The lab's tags have a clear one-cell white quiet zone.  Relying on it: the edge fit takes an
+    # edge whose quiet zone reads short of the tag's white as occluded, and the whole quiet zone's
+    # ring must read white and the black border's ring black, within `max_ring_deviation` of the
+    # tag's contrast, or something is in front of the tag (a strut) and it is dropped
+    # (`tag_quads.ring_deviation`).  False: tags printed with less margin, photographs of other
+    # people's tags (docs/fiducials.md, "Occlusion").
+    quiet_zone: bool = True
+    max_ring_deviation: float = 0.35
 
 
 @lru_cache(maxsize=64)
@@ -176,7 +179,7 @@ class TagDetector:
         everything = np.concatenate([quads, rej])
         if len(everything) == 0:
             return [], np.zeros((0, 4, 2))
-        fit = fit_quads(grey, everything, (self.K, self.dist))
+        fit = fit_quads(grey, everything, (self.K, self.dist), quiet_zone=cfg.quiet_zone)
         ok = self._fit_ok(fit, everything)
         keep = ok[:n] & (self._bit_errors(grey, fit.corners[:n], quads, ids) <= cfg.max_bit_errors)
         found_ids = [t for t, good in zip(ids, keep) if good]
@@ -187,7 +190,7 @@ class TagDetector:
             found_ids += [int(t) for t in tid[good]]
             found.append(rolled[good])
         corners = np.concatenate(found).reshape(-1, 4, 2)
-        if cfg.max_ring_deviation is not None and len(corners):
+        if cfg.quiet_zone and len(corners):
             clear = ring_deviation(grey, corners) <= cfg.max_ring_deviation
             found_ids = [t for t, c in zip(found_ids, clear) if c]
             corners = corners[clear]
@@ -195,10 +198,10 @@ class TagDetector:
 
     def refine(self, grey: np.ndarray, ids: Sequence[int], quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Edge-fitted corners of quads of known ids and whether each passed every check."""
-        fit = fit_quads(grey, quads, (self.K, self.dist))
+        fit = fit_quads(grey, quads, (self.K, self.dist), quiet_zone=self.config.quiet_zone)
         errors = self._bit_errors(grey, fit.corners, quads, ids)
         ok = self._fit_ok(fit, quads) & (errors <= self.config.max_bit_errors)
-        if self.config.max_ring_deviation is not None and len(quads):
+        if self.config.quiet_zone and len(quads):
             ok &= ring_deviation(grey, fit.corners) <= self.config.max_ring_deviation
         return fit.corners, ok
 

@@ -52,20 +52,22 @@ COARSE_BELOW_CELL_PX = 4.5  # tags with smaller cells start with a coarse pass
 SHARPEN = 0.25            # Laplacian sharpening of the cell samples before reading bits (AprilTag's default)
 CONVERGED_PX = 0.1        # a fine pass that moved no corner more than this ends a quad's refinement
 EDGE_LEVELS_MIN_CELL_PX = 4.0   # smaller cells: an edge's dark/bright levels are its tag's
-# Occlusion (docs/fiducials.md): a row is left out as occluded when its window's end samples differ
-# from its edge's medians by more than OCCLUSION_TOLERANCE of the edge's contrast, or (cells of
-# OCCLUSION_MIN_CELL_PX or more) its quiet zone darkens by more than OCCLUSION_MAX_DROP of the tag's
-# contrast just past the window; a whole edge, when its contrast at the windows' ends is below
-# OCCLUSION_MIN_CONTRAST of the tag's; and OCCLUSION_GUARD_ROWS rows either side go with each.
+# Occlusion (docs/fiducials.md), looked for on edges whose cells are OCCLUSION_MIN_CELL_PX or more:
+# a row is left out as occluded when its window's end samples differ from its edge's medians by
+# more than OCCLUSION_TOLERANCE of the edge's contrast; where cells are OCCLUSION_ABSOLUTE_MIN_CELL_PX
+# or more (windows reaching 2 px or more, clear of the edge's own blur), also when its quiet zone
+# darkens by more than OCCLUSION_MAX_DROP of the tag's contrast OCCLUSION_FAR_PX past its window,
+# and every row of an edge whose contrast at the windows' ends is below OCCLUSION_MIN_CONTRAST of
+# the tag's.  OCCLUSION_GUARD_ROWS rows either side go with each.
 OCCLUSION_TOLERANCE = 0.15
 OCCLUSION_MIN_CELL_PX = 3.5
+OCCLUSION_ABSOLUTE_MIN_CELL_PX = 4.0
 OCCLUSION_MAX_DROP = 0.2
 OCCLUSION_FAR_PX = 1.0
-OCCLUSION_DROP_MIN_CELL_PX = 4.5
 OCCLUSION_MIN_CONTRAST = 0.8
 OCCLUSION_GUARD_ROWS = 3
 RING_MIN_CELL_PX = 3.0         # ... on the sides whose cells are at least this wide
-RING_DEPTHS_CELLS = (0.5,)  # the perimeter check's samples, from the black square's edge (`ring_deviation`)
+RING_DEPTHS_CELLS = (0.3, 0.5)  # the perimeter check's samples, from the black square's edge (`ring_deviation`)
 
 
 @dataclass(frozen=True)
@@ -106,7 +108,7 @@ def _bilinear(g: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None, coarse: bool,
-              check: np.ndarray | None = None
+              check: np.ndarray | None = None, quiet_zone: bool = True
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One pass over every edge of every quad: each edge as a line (point, unit direction) in ideal
     pinhole pixels (image pixels without `camera`), whether it was fitted, the rms of its crossings
@@ -198,13 +200,15 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     chk = np.zeros(E, bool) if check is None else np.repeat(np.asarray(check, bool), 4)
     chk &= cell.ravel() >= OCCLUSION_MIN_CELL_PX
     bad &= chk[edge_of]
-    if chk.any():
+    chk &= cell.ravel() >= OCCLUSION_ABSOLUTE_MIN_CELL_PX
+    if quiet_zone and chk.any():
         # Something over the quiet zone all along an edge (a strut parallel to it) looks to the test
         # above like a narrow quiet zone, and the windows then reach into it.  Against the tag's own
         # black and white (its cells): an edge whose contrast at the window's ends falls short, or
         # a row whose quiet zone darkens again just past its window, is occluded.  Only where cells
-        # are OCCLUSION_MIN_CELL_PX or more: on smaller tags a sharp quiet zone is a few pixels of
-        # blur, and photographed tags' own margins fail these tests (docs/fiducials.md).
+        # are OCCLUSION_ABSOLUTE_MIN_CELL_PX or more: with smaller cells the window's ends lie on
+        # the edge's own blur (a clean edge seen obliquely reads 0.8 of the tag's contrast there),
+        # and photographed tags' own margins fail these tests (docs/fiducials.md).
         t_dark, t_bright = np.full(N, np.nan), np.full(N, np.nan)
         quads = np.flatnonzero(chk.reshape(N, 4).any(axis=1))
         t_dark[quads], t_bright[quads] = _tag_levels(grey, q[quads])
@@ -213,8 +217,7 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
         p_far = on_line + far * n_img
         v_far = _bilinear(grey, p_far[:, 0], p_far[:, 1])
         with np.errstate(invalid="ignore"):
-            drop_chk = chk & (cell.ravel() >= OCCLUSION_DROP_MIN_CELL_PX)
-            bad |= drop_chk[edge_of] & lvl_ok & in_img(p_far) & (v_bright - v_far > OCCLUSION_MAX_DROP * c_tag[edge_of])
+            bad |= chk[edge_of] & lvl_ok & in_img(p_far) & (v_bright - v_far > OCCLUSION_MAX_DROP * c_tag[edge_of])
             short = chk & (bright_m - dark_m < OCCLUSION_MIN_CONTRAST * c_tag)
         bad |= short[edge_of] & lvl_ok
     occluded = _dilate(bad, edge_of, OCCLUSION_GUARD_ROWS)
@@ -397,13 +400,16 @@ def _distort(pts: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None) -> n
 
 
 def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None = None,
-              passes: int = 3) -> QuadFit:
+              passes: int = 3, quiet_zone: bool = True) -> QuadFit:
     """Refine the quads (N, 4, 2; corners clockwise in the image as aruco returns them) of tags in a
     grey image (2-D, any numeric type) by fitting each edge: a coarse pass first for small tags
     (their windows are too short to pull in a corner a pixel or two off), then up to `passes` fine
     ones, until no corner moves more than CONVERGED_PX; see the module's docstring.  With
     `camera` = (K, dist) the edges are fitted as straight lines in the undistorted image (lens
-    distortion bends them by tenths of a pixel over a near tag)."""
+    distortion bends them by tenths of a pixel over a near tag).  Rows an occluder crosses are left
+    out (`QuadFit.occluded`); `quiet_zone`: the tags have a clear one-cell quiet zone, so an edge
+    whose quiet zone reads short of the tag's white is occluded too (not for tags printed with
+    less margin)."""
     q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
     g = np.ascontiguousarray(grey, dtype=np.float32)
     N = len(q)
@@ -418,7 +424,7 @@ def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.
 
     def step(idx: np.ndarray, coarse: bool, check: np.ndarray | None = None) -> np.ndarray:
         """One pass over the quads `idx`; how far each one's corners moved."""
-        p, d, fitted, rms_pass, stats, occ_pass = _fit_pass(g, cur[idx], camera, coarse, check)
+        p, d, fitted, rms_pass, stats, occ_pass = _fit_pass(g, cur[idx], camera, coarse, check, quiet_zone)
         occluded[idx] = occ_pass
         rms[idx] = np.where(fitted, rms_pass, rms[idx])
         fitted_any[idx] |= fitted

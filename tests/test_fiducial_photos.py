@@ -30,7 +30,7 @@ def reference() -> dict:
 def detector() -> TagDetector:
     # a photograph's tags are not the lab's: every id, any size, margins as printed (many cube faces
     # have less than a cell of white: no quiet-zone ring check); corners only, so no camera
-    return TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)}, DetectorConfig(max_ring_deviation=None))
+    return TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)}, DetectorConfig(quiet_zone=False))
 
 
 def photo(name: str) -> np.ndarray:
