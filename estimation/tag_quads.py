@@ -66,7 +66,7 @@ OCCLUSION_MAX_DROP = 0.2
 OCCLUSION_FAR_PX = 1.0
 OCCLUSION_MIN_CONTRAST = 0.8
 OCCLUSION_GUARD_ROWS = 3
-RING_MIN_CELL_PX = 3.0         # ... on the sides whose cells are at least this wide
+RING_MIN_EDGE_PX = 0.9         # ... those at least this far from both edges of their cell
 RING_DEPTHS_CELLS = (0.3, 0.5)  # the perimeter check's samples, from the black square's edge (`ring_deviation`)
 
 
@@ -608,13 +608,14 @@ def identify(grey: np.ndarray, quads: np.ndarray, codes: np.ndarray, allowed: np
 
 
 @lru_cache(maxsize=1)
-def _ring_points() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _ring_points() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Unit-square points (u right, v down; the black square is 0..1) a quarter cell apart along
     the black border and along the quiet zone, at RING_DEPTHS_CELLS from the black square's edge
     (inwards for the border, outwards for the quiet zone, whose run goes on past the corners);
-    whether each is a quiet-zone point; and the side it samples (0 top, 1 right, 2 bottom, 3 left:
-    edge i runs from corner i to corner i + 1)."""
-    pts, quiet, side = [], [], []
+    whether each is a quiet-zone point; the side it samples (0 top, 1 right, 2 bottom, 3 left:
+    edge i runs from corner i to corner i + 1); and its distance from the nearer edge of its ring
+    cell, in cells."""
+    pts, quiet, side, margin = [], [], [], []
     for outward, sign in ((False, -1.0), (True, 1.0)):
         for depth in RING_DEPTHS_CELLS:
             off = sign * depth / CELLS                        # from the edge, in unit-square units
@@ -626,8 +627,9 @@ def _ring_points() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                 pts.append(uv)
                 quiet.append(np.full(len(s), outward))
                 side.append(np.full(len(s), e))
+                margin.append(np.full(len(s), min(depth, 1.0 - depth)))
     p = np.concatenate(pts)
-    return np.column_stack([p, np.ones(len(p))]), np.concatenate(quiet), np.concatenate(side)
+    return np.column_stack([p, np.ones(len(p))]), np.concatenate(quiet), np.concatenate(side), np.concatenate(margin)
 
 
 def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
@@ -637,13 +639,13 @@ def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     in front of it crossing the border or the quiet zone (a strut), a quiet zone narrower than a
     cell or a shadow's edge reads more.  Points a quarter cell apart along the ring, at
     RING_DEPTHS_CELLS from the black square's edge on either side, those in the image (a tag may
-    run off the frame) on sides whose cells are at least RING_MIN_CELL_PX across (on a tag seen
-    very obliquely, the blur of a cell's two edges meets in its middle); quads (N, 4, 2), corner 0
-    the marker's top-left."""
+    run off the frame) and at least RING_MIN_EDGE_PX from both edges of their ring cell (on a
+    small tag or one seen very obliquely, the blur of a cell's two edges meets in its middle);
+    quads (N, 4, 2), corner 0 the marker's top-left."""
     q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
     if len(q) == 0:
         return np.zeros(0)
-    uv1, quiet, side = _ring_points()
+    uv1, quiet, side, margin = _ring_points()
     pts = _unit_square_to_quads(q, uv1)
     H, W = np.shape(grey)
     v = _bilinear(np.asarray(grey, dtype=np.float32), pts[..., 0], pts[..., 1])
@@ -654,7 +656,7 @@ def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     n_out = np.stack([u[..., 1], -u[..., 0]], axis=2)
     across = np.minimum(np.abs(np.sum(np.roll(seg, 1, axis=1) * n_out, axis=2)),
                         np.abs(np.sum(np.roll(seg, -1, axis=1) * n_out, axis=2))) / CELLS     # (N, 4)
-    inside &= across[:, side] >= RING_MIN_CELL_PX
+    inside &= across[:, side] * margin[None, :] >= RING_MIN_EDGE_PX
     dark, bright = _tag_levels(grey, q)
     contrast = np.maximum(bright - dark, 1e-6)[:, None]
     short = np.where(quiet[None, :], bright[:, None] - v, v - dark[:, None]) / contrast
