@@ -608,19 +608,22 @@ def identify(grey: np.ndarray, quads: np.ndarray, codes: np.ndarray, allowed: np
 
 
 @lru_cache(maxsize=1)
-def _ring_points() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _ring_points() -> tuple[np.ndarray, ...]:
     """Unit-square points (u right, v down; the black square is 0..1) a quarter cell apart along
     the black border and along the quiet zone, at RING_DEPTHS_CELLS from the black square's edge
-    (inwards for the border, outwards for the quiet zone, whose run goes on past the corners);
-    whether each is a quiet-zone point; the side it samples (0 top, 1 right, 2 bottom, 3 left:
-    edge i runs from corner i to corner i + 1); and its distance from the nearer edge of its ring
-    cell, in cells."""
-    pts, quiet, side, margin = [], [], [], []
+    (inwards for the border, outwards for the quiet zone, whose run goes on past the corners), and
+    for each: whether it is a quiet-zone point, the side it samples (0 top, 1 right, 2 bottom,
+    3 left: edge i runs from corner i to corner i + 1), its distance (cells) from the nearer edge of
+    its ring cell across the side, the side whose edge is nearest along it (at the corner it is
+    closer to) and its distance (cells) from that: the black square's edge for a border point, the
+    quiet zone's outer edge for a quiet-zone point past the corner (inf before it)."""
+    pts, quiet, side, margin, adj, along = [], [], [], [], [], []
     for outward, sign in ((False, -1.0), (True, 1.0)):
         for depth in RING_DEPTHS_CELLS:
             off = sign * depth / CELLS                        # from the edge, in unit-square units
             reach = (CELLS / 2 + (depth if outward else -depth)) / CELLS
             s = np.arange(-reach, reach + 1e-9, 0.25 / CELLS) + 0.5
+            t = np.abs(s - 0.5) * CELLS                      # cells from the side's middle
             for e in range(4):   # top (v = 0), right (u = 1), bottom (v = 1), left (u = 0)
                 line = np.full_like(s, (0.0, 1.0, 1.0, 0.0)[e] + (-off, off, off, -off)[e])
                 uv = np.column_stack([s, line]) if e in (0, 2) else np.column_stack([line, s])
@@ -628,8 +631,11 @@ def _ring_points() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
                 quiet.append(np.full(len(s), outward))
                 side.append(np.full(len(s), e))
                 margin.append(np.full(len(s), min(depth, 1.0 - depth)))
+                adj.append(np.where(s < 0.5, 3, 1) if e in (0, 2) else np.where(s < 0.5, 0, 2))
+                along.append(np.where(t > CELLS / 2, CELLS / 2 + 1.0 - t, np.inf) if outward else CELLS / 2 - t)
     p = np.concatenate(pts)
-    return np.column_stack([p, np.ones(len(p))]), np.concatenate(quiet), np.concatenate(side), np.concatenate(margin)
+    return (np.column_stack([p, np.ones(len(p))]), np.concatenate(quiet), np.concatenate(side),
+            np.concatenate(margin), np.concatenate(adj), np.concatenate(along))
 
 
 def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
@@ -639,13 +645,13 @@ def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     in front of it crossing the border or the quiet zone (a strut), a quiet zone narrower than a
     cell or a shadow's edge reads more.  Points a quarter cell apart along the ring, at
     RING_DEPTHS_CELLS from the black square's edge on either side, those in the image (a tag may
-    run off the frame) and at least RING_MIN_EDGE_PX from both edges of their ring cell (on a
-    small tag or one seen very obliquely, the blur of a cell's two edges meets in its middle);
+    run off the frame) and at least RING_MIN_EDGE_PX from every edge of their ring cell (on a
+    small tag or one seen very obliquely, the blur of a cell's edges meets in its middle);
     quads (N, 4, 2), corner 0 the marker's top-left."""
     q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
     if len(q) == 0:
         return np.zeros(0)
-    uv1, quiet, side, margin = _ring_points()
+    uv1, quiet, side, margin, adj, along = _ring_points()
     pts = _unit_square_to_quads(q, uv1)
     H, W = np.shape(grey)
     v = _bilinear(np.asarray(grey, dtype=np.float32), pts[..., 0], pts[..., 1])
@@ -656,7 +662,7 @@ def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     n_out = np.stack([u[..., 1], -u[..., 0]], axis=2)
     across = np.minimum(np.abs(np.sum(np.roll(seg, 1, axis=1) * n_out, axis=2)),
                         np.abs(np.sum(np.roll(seg, -1, axis=1) * n_out, axis=2))) / CELLS     # (N, 4)
-    inside &= across[:, side] * margin[None, :] >= RING_MIN_EDGE_PX
+    inside &= (across[:, side] * margin[None, :] >= RING_MIN_EDGE_PX) & (across[:, adj] * along[None, :] >= RING_MIN_EDGE_PX)
     dark, bright = _tag_levels(grey, q)
     contrast = np.maximum(bright - dark, 1e-6)[:, None]
     short = np.where(quiet[None, :], bright[:, None] - v, v - dark[:, None]) / contrast
