@@ -417,21 +417,42 @@ def _empty():
     return np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0), np.zeros(0)
 
 
+@lru_cache(maxsize=2)
+def _buffers(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel scratch (rank, coverage) for `_composite`, kept between frames: -1 and 0 except
+    while a composite runs (it resets what it touched)."""
+    return np.full(size, -1, np.int32), np.zeros(size, np.float32)
+
+
 def _composite(flat: np.ndarray, idx: np.ndarray, rank: np.ndarray, cover: np.ndarray, value: np.ndarray) -> None:
     """Lay each (pixel, rank) sample over the image, lower ranks first where samples share a pixel:
     peel off the highest rank at each pixel until none is left, then composite the layers from the
-    last peeled (the lowest ranks) to the first."""
-    keep = np.flatnonzero(cover > 0.0)
-    idx, rank, cover, value = idx[keep], rank[keep], cover[keep], value[keep]
-    owner = np.full(flat.shape, -1, np.int32)
+    last peeled (the lowest ranks) to the first.  A sample under one that covers its pixel whole
+    is dropped."""
+    if np.count_nonzero(cover == 0.0):
+        keep = np.flatnonzero(cover > 0.0)
+        idx, rank, cover, value = idx[keep], rank[keep], cover[keep], value[keep]
+    owner, over = _buffers(flat.size)
     layers = []
-    rest = np.arange(len(idx))
-    while rest.size:
-        np.maximum.at(owner, idx[rest], rank[rest])
-        top = np.take(owner, idx[rest]) == rank[rest]
-        layers.append(rest[top])
-        rest = rest[~top]
-        owner[idx[rest]] = -1
+    rest = None
+    touched = []
+    while True:
+        i, r = (idx, rank) if rest is None else (idx[rest], rank[rest])
+        if not i.size:
+            break
+        np.maximum.at(owner, i, r)
+        top = np.take(owner, i) == r
+        lay = np.flatnonzero(top) if rest is None else rest[top]
+        layers.append(lay)
+        owner[i] = -1
+        below = np.flatnonzero(~top) if rest is None else rest[~top]
+        if rest is None:                 # what the nearest layer leaves showing, per pixel
+            over[idx[lay]] = cover[lay]
+            touched.append(idx[lay])
+            below = below[np.take(over, idx[below]) < 0.999]
+        rest = below
+    for t in touched:
+        over[t] = 0.0
     for lay in reversed(layers):
         i = idx[lay]
         px = np.take(flat, i)
