@@ -5,9 +5,13 @@ measurement covariance.
   quads and their ids (accepting tags that touch the image border); each quad is then refined by
   fitting its four edges (`estimation.tag_quads.fit_quads`: unbiased to a few thousandths of a pixel
   on area-sampled images, lens distortion taken out) and checked: every edge fitted, straight (rms
-  of its row crossings), corners near the detector's quad, and the tag's 64 cells read back from
-  the refined quad within `max_bit_errors` of the id's pattern.  A tag failing a check is dropped:
-  its corners are not to be trusted at the accuracy the pose and the graph assume.
+  of its row crossings), corners near the detector's quad, the tag's 64 cells read back from
+  the refined quad within `max_bit_errors` of the id's pattern, and nothing in front of it: no
+  edge more than half occluded (`QuadFit.occluded`) and, for tags with a clear quiet zone (the
+  lab's: `DetectorConfig.quiet_zone`), its whole black border and quiet zone reading black and
+  white (`tag_quads.ring_deviation`).  A tag failing a check is dropped: its corners are not to
+  be trusted at the accuracy the pose and the graph assume (a strut across a tag's quiet zone
+  moved its corners by up to 4 px before these checks: docs/fiducials.md, "Occlusion").
 - Corners: OpenCV's pixel convention (pixel centres at integer coordinates) and aruco's order:
   the marker's top-left, top-right, bottom-right, bottom-left as OpenCV 4 draws it
   (`cv2.aruco.generateImageMarker`, which the simulator renders), matching `tag_object_points`.

@@ -25,6 +25,14 @@ steepest dark-to-bright step within 1.5 cells), which pulls in a detector's corn
 passes follow until no corner moves more than CONVERGED_PX.  An edge with fewer than `MIN_ROWS`
 usable rows keeps the line it came with (and its quad is reported as not fully fitted).
 
+Occlusion (a strut of the truss in front of a tag): from the second fine pass, an edge's dark and
+bright levels are the medians of the image at its windows' two ends, and rows whose ends stray
+from them (something crossing the edge), or, on tags with a clear quiet zone, whose quiet zone
+darkens just past the window or whose edge reads short of the tag's contrast (something along
+the edge), are left out with guard rows (`QuadFit.occluded`); `ring_deviation` reads the whole
+black border and quiet zone against the tag's own black and white.  Constants OCCLUSION_* and
+RING_*; docs/fiducials.md, "Occlusion".
+
 Bit reading (`read_bits`, `identify`): the 8x8 cells and the quiet-zone ring around them sampled at
 their centres through the quad's homography, sharpened, and thresholded halfway between planes
 fitted to the black border and to the white ring, as the AprilTag library does; a detection is

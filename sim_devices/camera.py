@@ -5,8 +5,11 @@ AprilTags from the true camera pose with `sim_devices.render.render_tags`.
 sees exactly the rendered pixels), with `X-Frame-Seq` and `X-Frame-Time-S` headers;
 `GET /intrinsics.json` reports the true camera model in the calibration-file format; `GET /id`.
 
-Known limitations: those of the renderer (no lighting model, no occlusion by the truss's struts,
-no motion blur: a frame taken while something moves shows one instant)."""
+The frame shows the truss built so far too (`sim_devices.render_truss`: struts and nodes in front
+of and behind the tags), always.
+
+Known limitations: those of the renderer (no lighting model for the tags, no shadows, no motion
+blur: a frame taken while something moves shows one instant)."""
 
 from __future__ import annotations
 

@@ -29,7 +29,9 @@ The background (a grey level, or an image of the frame that is blurred like the 
 distorted: it is taken to be what the camera sees behind the tags.
 
 Known limitations: no lighting or shading model (the tag's black and white levels are constant),
-no motion blur, no rolling shutter, no occlusion by anything other than other tags, no vignetting;
+no motion blur, no rolling shutter, no occlusion by anything other than other tags (the truss is
+drawn by `sim_devices.render_truss`, through `render_tags`'s overlay and the depth buffer
+`render_grey` keeps), no vignetting;
 a tag partly behind the camera is dropped whole rather than clipped; the blur is applied to each
 tag and not across an occluding tag's outline.
 """

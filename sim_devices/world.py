@@ -16,8 +16,10 @@
 - the world frame is where the turntable plate sits at encoder zero, so the structure turns about
   the true axis: world_T_structure(a) = world_T_axis · Rz(a + repeatability) · axis_T_world ·
   world_T_structure_design(0);
-- the BORG structure (`BorgTruth`): which modules are placed so far (only their tags are seen),
-  per-module pose errors, partial deployments, displaced tags;
+- the BORG structure (`BorgTruth`): which modules are placed so far (their tags, and their struts
+  and nodes: `BorgTruth.truss`, drawn in every frame by `sim_devices.render_truss`, in front of the
+  tags they hide), per-module pose errors, partial deployments, displaced tags;
+- the lab's lamp (`LIGHT_WORLD`), which shades the truss;
 - each IPJR's actuator (`sim_devices.ipjr.IpjrActuator`), and the strut it is attached to.
 
 Procedures use it in simulation to act as the operator (place a module, attach an IPJR) and to
