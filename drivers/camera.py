@@ -1,8 +1,9 @@
 """Camera driver: frames with timestamps, intrinsics from a calibration file.
 
 Two sources, picked from the rig's URL:
-- a snapshot endpoint (`http://HOST:PORT/frame.png`, docs/protocols.md §6): one GET, one lossless
-  frame of the current view; the simulated camera serves one, so do many IP cameras;
+- a snapshot endpoint (`http://HOST:PORT/frame.jpg`, docs/protocols.md §6): one GET, one frame of
+  the current view, any format OpenCV decodes (JPEG as IP cameras send it, PNG lossless); the
+  simulated camera serves one, so do many IP cameras;
 - OpenCV capture (`cv2.VideoCapture`): a device index (`"0"`), `/dev/videoN`, or a stream URL
   (`rtsp://...`, `http://.../video.mjpg`).
 

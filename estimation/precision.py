@@ -48,6 +48,15 @@ def module_sigma(tag_T_module: Pose3, tag_covariance: np.ndarray) -> ModuleSigma
                        float(math.sqrt(max(np.trace(pos), 0.0))), float(math.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
 
 
+def module_position_covariance(structure_T_tag: Pose3, tag_T_module: Pose3, tag_covariance: np.ndarray) -> np.ndarray:
+    """3x3 covariance of the module anchor's position, in the structure frame (for NEES against
+    a truth, and for the 1-sigma along any direction)."""
+    cov = 0.5 * (np.asarray(tag_covariance, float) + np.asarray(tag_covariance, float).T)
+    J = np.hstack([-_skew(tag_T_module.translation()), np.eye(3)])
+    R = structure_T_tag.rotation().matrix()
+    return R @ (J @ cov @ J.T) @ R.T
+
+
 def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 

@@ -36,7 +36,8 @@ import gtsam
 import numpy as np
 
 from estimation.fiducials import tag_object_points
-from estimation.rig_model import (AXIS, BASE, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry,
+from estimation.rig_model import (AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT,
+                                  RigGeometry, distortion_prior_sigmas, radial_basis,
                                   ViewMotion, cal3_s2, chain_factor, corner_factor, nees, side_ratio, tag_prior_noise,
                                   undistort_px)
 from lab.geometry import Pose3, Rot3, to_xyzrpy
@@ -44,6 +45,7 @@ from lab.rig_calibration import RigCalibration
 
 C = gtsam.symbol_shorthand.C
 T = gtsam.symbol_shorthand.T
+S = gtsam.symbol_shorthand.S   # a turntable tag's print scale
 
 
 @dataclass(frozen=True)
@@ -83,6 +85,7 @@ class RigSolution:
     iterations: int = 0
     oblique_dropped: int = 0               # sightings left out as too oblique (min_side_ratio)
     corner_sigma_px: float = float("nan")  # the corner noise the final pass used (measured)
+    turntable_tag_sigma_m: float = float("nan")  # the turntable tags' glue scatter the final pass used (measured)
 
     @property
     def ok(self) -> bool:
@@ -164,14 +167,17 @@ def hand_eye(views: Sequence[CalibrationView], cameras: Sequence[Pose3 | None], 
 def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.ndarray,
               tags: Mapping[int, tuple[Pose3, float]], *, turntable_tags: Sequence[int] = (),
               corner_sigma_px: float = 0.15, limits: Limits | None = None, rig_name: str = "",
-              max_iterations: int = 60, passes: int = 2, min_side_ratio: float = MIN_SIDE_RATIO,
-              measure_corner_sigma: bool = True, oblique_exponent: float = OBLIQUE_EXPONENT) -> RigSolution:
+              max_iterations: int = 60, passes: int = 4, min_side_ratio: float = MIN_SIDE_RATIO,
+              measure_corner_sigma: bool = True, oblique_exponent: float = OBLIQUE_EXPONENT,
+              tag_scale_sigma: float = 0.0) -> RigSolution:
     """Calibrate the rig from `views`.  `tags`: every tag that may be seen, id -> (design
     structure_T_tag, size); `turntable_tags` among them get a pose variable with a design prior
     (the rig's turntable_tag_sigma), the others are held at their design poses by a tight prior.
     `corner_sigma_px` is the first pass's corner noise; with `measure_corner_sigma` later passes
     use the one the residuals imply.  Sightings flatter than `min_side_ratio` are left out; the
-    others' corner sigma grows as side_ratio ** -oblique_exponent (`corner_sigma_px` is face-on)."""
+    others' corner sigma grows as side_ratio ** -oblique_exponent (`corner_sigma_px` is face-on).
+    `tag_scale_sigma`: each turntable tag's print scale is a variable with this prior (relative),
+    so a tag printed large does not pull the rig toward it (its uncertainty reaches the covariance)."""
     limits = limits or Limits()
     K0 = geometry.K
     views, dropped = drop_oblique(views, K0, dist, min_side_ratio)
@@ -184,9 +190,10 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
     K_und = K0
     est = None
     sigma = corner_sigma_px
+    glue = geometry.config.turntable_tag_sigma_m
     for k in range(max(1, passes)):
         graph, values, seen, n_views = _build(views, geometry, dist, tags, turntable_tags, sigma, K_und,
-                                              means, covs, B0, M0, est, scale)
+                                              means, covs, B0, M0, est, scale, glue, tag_scale_sigma)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
         params.setRelativeErrorTol(1e-8)
@@ -199,6 +206,7 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
         K_und = est.atCal3_S2(INTRINSICS).K()
         if measure_corner_sigma and k + 1 < passes:
             sigma = _measured_corner_sigma(views, est, K_und, dist, tags, sigma, scale)
+            glue = _measured_glue_sigma(graph, est, tags, set(turntable_tags) & seen, glue)
     assert est is not None
     marg = gtsam.Marginals(graph, est)
     cal = est.atCal3_S2(INTRINSICS)
@@ -210,13 +218,17 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
     tt = set(turntable_tags)
     tag_poses = {t: est.atPose3(T(t)) for t in sorted(seen & tt)}
     tag_covs = {t: marg.marginalCovariance(T(t)) for t in tag_poses}
+    # the run's prior is this joint covariance, not the marginals (lab/rig_calibration.py)
+    joint = marg.jointMarginalCovariance(gtsam.KeyVector([AXIS, BASE, MOUNT, INTRINSICS, DISTORTION,
+                                                          *(T(t) for t in tag_poses)])).fullMatrix()
     residuals = _residuals(views, est, K_und, dist, tags)
     calibration = RigCalibration(est.atPose3(MOUNT), est.atPose3(BASE), est.atPose3(AXIS), K, cov, tag_poses,
                                  tag_covs, float(np.sqrt(np.mean(residuals ** 2))) if residuals.size else float("nan"),
-                                 n_views, rig_name)
+                                 n_views, rig_name, joint_covariance=0.5 * (joint + joint.T), corner_sigma_px=sigma,
+                                 distortion_correction=tuple(float(x) for x in est.atVector(DISTORTION)))
     problems = conditioning_problems(calibration, views, limits)
     return RigSolution(calibration, residuals, problems, {"world_T_base": B0, "platform_T_camera": M0},
-                       opt.iterations(), dropped, sigma)
+                       opt.iterations(), dropped, sigma, glue)
 
 
 def _measured_corner_sigma(views, est, K_und, dist, tags, sigma, scale) -> float:
@@ -235,8 +247,36 @@ def _measured_corner_sigma(views, est, K_und, dist, tags, sigma, scale) -> float
     return max(CORNER_SIGMA_FLOOR_PX, s)
 
 
+# the glue scatter is never taken as smaller than this: a tag's place is not known better than its
+# print (and a perfect fit must not make the frame exact)
+GLUE_SIGMA_FLOOR_M = 2e-5
+
+
+def _measured_glue_sigma(graph: gtsam.NonlinearFactorGraph, est: gtsam.Values, tags: Mapping[int, tuple[Pose3, float]],
+                         turntable_tags: set[int], sigma_m: float) -> float:
+    """The turntable tags' glue scatter their estimates imply (variance component estimation of
+    the prior group): sigma^2 <- sigma^2 * v'Pv / r, with v each tag's estimate against its design
+    pose, P the prior's information and r = n - tr(P Sigma_post) the group's redundancy.  A rig
+    whose tags are glued better than the rig file says gets a frame known as well as that; a worse
+    one, an honestly wider frame.  Only the scatter between tags is seen: the tags' common error
+    (the frame's yaw and height) is what the prior then carries, at the measured scatter."""
+    if not turntable_tags:
+        return sigma_m
+    marg = gtsam.Marginals(graph, est)
+    vpv = r = 0.0
+    for t in sorted(turntable_tags):
+        design, size = tags[t]
+        info = np.diag(1.0 / np.array([sigma_m / size] * 3 + [sigma_m] * 3) ** 2)
+        v = Pose3.Logmap(design.between(est.atPose3(T(t))))
+        vpv += float(v @ info @ v)
+        r += 6.0 - float(np.trace(info @ marg.marginalCovariance(T(t))))
+    if r <= 0.5:
+        return sigma_m
+    return max(GLUE_SIGMA_FLOOR_M, sigma_m * math.sqrt(vpv / r))
+
+
 def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, means, covs, B0, M0, start,
-           scale=None):
+           scale=None, glue_sigma_m=None, tag_scale_sigma=0.0):
     """The calibration graph; `start` (a previous solution) seeds the values."""
     K0 = geometry.K
     cfg = geometry.config
@@ -257,6 +297,10 @@ def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, 
     graph.add(gtsam.PriorFactorCal3_S2(INTRINSICS, cal3_s2(K0), gtsam.noiseModel.Diagonal.Sigmas(np.array(
         [cfg.focal_sigma * f, cfg.focal_sigma * f, 1e-6, cfg.principal_point_sigma_px, cfg.principal_point_sigma_px]))))
     values.insert(INTRINSICS, cal3_s2(K0))
+    # the lens: the camera file's distortion is known to [calibration] distortion_sigma_px at the corners
+    graph.add(gtsam.PriorFactorVector(DISTORTION, np.zeros(2), gtsam.noiseModel.Diagonal.Sigmas(
+        distortion_prior_sigmas(cfg.distortion_sigma_px, K0))))
+    values.insert(DISTORTION, np.zeros(2))
     tt = set(turntable_tags)
     seen: set[int] = set()
     n_views = 0
@@ -271,11 +315,19 @@ def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, 
             pose, size = tags[s.tag_id]
             if s.tag_id not in seen:
                 seen.add(s.tag_id)
-                sig = cfg.turntable_tag_sigma_m if s.tag_id in tt else 1e-6
+                glue = cfg.turntable_tag_sigma_m if glue_sigma_m is None else glue_sigma_m
+                sig = glue if s.tag_id in tt else 1e-6
                 graph.add(gtsam.PriorFactorPose3(T(s.tag_id), pose, tag_prior_noise(sig, size)))
                 values.insert(T(s.tag_id), pose)
-            graph.add(corner_factor(C(k), T(s.tag_id), undistort_px(s.corners_px, K_und, dist),
-                                    tag_object_points(size), corner_sigma_px * (scale or {}).get((k, s.tag_id), 1.0)))
+                if s.tag_id in tt and tag_scale_sigma > 0:
+                    graph.add(gtsam.PriorFactorVector(S(s.tag_id), np.zeros(1),
+                                                      gtsam.noiseModel.Isotropic.Sigma(1, tag_scale_sigma)))
+                    values.insert(S(s.tag_id), np.zeros(1))
+            sk = S(s.tag_id) if s.tag_id in tt and tag_scale_sigma > 0 else None
+            u = undistort_px(s.corners_px, K_und, dist)
+            graph.add(corner_factor(C(k), T(s.tag_id), u, tag_object_points(size),
+                                    corner_sigma_px * (scale or {}).get((k, s.tag_id), 1.0), scale_key=sk,
+                                    distortion=(DISTORTION, radial_basis(u, K_und))))
     if start is not None:
         values = gtsam.Values(start)
     return graph, values, seen, n_views
@@ -296,8 +348,11 @@ def _residuals(views: Sequence[CalibrationView], est: gtsam.Values, K_und: np.nd
                 continue
             pose = est.atPose3(T(s.tag_id))
             meas = undistort_px(s.corners_px, K_und, dist)
+            if est.exists(DISTORTION):
+                meas = meas + (radial_basis(meas, K_und) @ est.atVector(DISTORTION)).reshape(4, 2)
             w = (scale or {}).get((k, s.tag_id), 1.0)
-            for p, m in zip(tag_object_points(tags[s.tag_id][1]), meas):
+            printed = 1.0 + float(est.atVector(S(s.tag_id))[0]) if est.exists(S(s.tag_id)) else 1.0
+            for p, m in zip(printed * tag_object_points(tags[s.tag_id][1]), meas):
                 out.append(float(np.linalg.norm(cam.project(pose.transformFrom(p)) - m)) / w)
     return np.asarray(out)
 

@@ -33,6 +33,7 @@ the calibration is fixed by the turntable tags and the modules already tied.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -44,8 +45,10 @@ from lab.geometry import Pose3, Rot3, from_xyzrpy
 from lab.rig_calibration import RigCalibration
 
 AXIS, BASE, MOUNT, INTRINSICS, LIFT = (gtsam.symbol(c, 0) for c in "abmkl")
+# the true lens's radial distortion against the camera file's: (dk1, dk2), a 2-vector variable
+DISTORTION = gtsam.symbol("d", 0)
 _E_RZ = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
-_GAUGE_SIGMA = 1e-7
+GAUGE_SIGMA = 1e-7
 
 
 @dataclass(frozen=True)
@@ -104,15 +107,15 @@ class RigGeometry:
             axis_cov = calibration.covariance["world_T_axis"].copy()
             axis_cov[[2, 5], :] = 0.0
             axis_cov[:, [2, 5]] = 0.0
-            axis_cov[2, 2] = axis_cov[5, 5] = _GAUGE_SIGMA ** 2
+            axis_cov[2, 2] = axis_cov[5, 5] = GAUGE_SIGMA ** 2
             means = {AXIS: calibration.world_T_axis, BASE: calibration.world_T_base, MOUNT: calibration.platform_T_camera}
             covs = {AXIS: axis_cov, BASE: calibration.covariance["world_T_base"],
                     MOUNT: calibration.covariance["platform_T_camera"]}
         else:
             # isotropic per block, so the same in the pose's own tangent as in its parent's axes
             means = {AXIS: Pose3(), BASE: self.nominal_world_T_base, MOUNT: self.nominal_platform_T_camera}
-            covs = {AXIS: np.diag([c.turntable_axis_sigma_rad, c.turntable_axis_sigma_rad, _GAUGE_SIGMA,
-                                   c.turntable_axis_sigma_m, c.turntable_axis_sigma_m, _GAUGE_SIGMA]) ** 2,
+            covs = {AXIS: np.diag([c.turntable_axis_sigma_rad, c.turntable_axis_sigma_rad, GAUGE_SIGMA,
+                                   c.turntable_axis_sigma_m, c.turntable_axis_sigma_m, GAUGE_SIGMA]) ** 2,
                     BASE: np.diag([c.stewart_base_sigma_rad] * 3 + [c.stewart_base_sigma_m] * 3) ** 2,
                     MOUNT: np.diag([c.camera_mount_sigma_rad] * 3 + [c.camera_mount_sigma_m] * 3) ** 2}
         return means, covs
@@ -121,7 +124,7 @@ class RigGeometry:
         """The lift's axis: vertical, known to the [calibration] lift_axis_sigma in tilt; its yaw
         and position are gauge (they do not change lift(h))."""
         t = self.config.lift_axis_sigma_rad
-        return Pose3(), np.diag([t, t, _GAUGE_SIGMA, _GAUGE_SIGMA, _GAUGE_SIGMA, _GAUGE_SIGMA]) ** 2
+        return Pose3(), np.diag([t, t, GAUGE_SIGMA, GAUGE_SIGMA, GAUGE_SIGMA, GAUGE_SIGMA]) ** 2
 
     def chain_noise(self, motion: ViewMotion, M: Pose3 | None = None) -> gtsam.noiseModel.Base:
         """The devices' repeatability, propagated to the camera pose (its tangent).  A lifted view
@@ -213,13 +216,40 @@ def cal3_s2(K: np.ndarray) -> gtsam.Cal3_S2:
     return gtsam.Cal3_S2(float(K[0, 0]), float(K[1, 1]), float(K[0, 1]), float(K[0, 2]), float(K[1, 2]))
 
 
+def radial_basis(corners_px: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(8, 2): how the four undistorted corners move per unit of (dk1, dk2), the true lens's radial
+    terms minus the camera file's.  To first order an undistorted point through the file's model
+    is off the true one by -f x_n (dk1 r^2 + dk2 r^4) (x_n, r normalised, from the corner itself)."""
+    u = np.asarray(corners_px, float).reshape(4, 2)
+    f = np.array([K[0, 0], K[1, 1]])
+    xn = (u - np.array([K[0, 2], K[1, 2]])) / f
+    r2 = np.sum(xn ** 2, axis=1, keepdims=True)
+    G = np.zeros((8, 2))
+    G[:, 0] = (-f * xn * r2).ravel()
+    G[:, 1] = (-f * xn * r2 ** 2).ravel()
+    return G
+
+
+def distortion_prior_sigmas(sigma_px: float, K: np.ndarray) -> np.ndarray:
+    """Prior sigmas of (dk1, dk2) that move a point at the frame's corner by `sigma_px` each (the
+    corner taken where the principal point is the frame's centre)."""
+    rc = math.hypot(K[0, 2] / K[0, 0], K[1, 2] / K[1, 1])
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    return np.array([sigma_px / (f * rc ** 3), sigma_px / (f * rc ** 5)])
+
+
 def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_corners_m: np.ndarray,
                   sigma_px: float, intrinsics_key: int = INTRINSICS,
-                  robust_k: float | None = 3.0, fixed: gtsam.Cal3_S2 | None = None) -> gtsam.CustomFactor:
+                  robust_k: float | None = 3.0, fixed: gtsam.Cal3_S2 | None = None,
+                  scale_key: int | None = None, distortion: tuple[int, np.ndarray] | None = None) -> gtsam.CustomFactor:
     """Reprojection error (8-vector, px) of a tag's four corners.  `corners_px`: (4, 2)
     undistorted measurements in pixels of the nominal pinhole; `tag_corners_m`: (4, 3) the
     corners in the tag frame, in the same order.  With `fixed` intrinsics the factor is on the
-    camera and the tag only (a run: the intrinsics come from the rig calibration)."""
+    camera and the tag only (a run: the intrinsics come from the rig calibration).  With
+    `scale_key` the tag as printed is (1 + s) times its nominal size, s a 1-vector variable (a
+    printer's scale error moves a tag seen from one side along the line of sight by s x distance).
+    With `distortion` = (key, radial_basis(corners)) the measured corners are corrected by the
+    lens's radial distortion error, a 2-vector variable shared by every sighting."""
     meas = np.asarray(corners_px, dtype=float).reshape(4, 2)
     local = [np.asarray(p, dtype=float) for p in tag_corners_m]
     noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(8, sigma_px)
@@ -230,28 +260,42 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
         C = values.atPose3(camera_key)
         T = values.atPose3(tag_key)
         cam = gtsam.PinholeCameraCal3_S2(C, fixed if fixed is not None else values.atCal3_S2(intrinsics_key))
+        k = 1.0 + float(values.atVector(scale_key)[0]) if scale_key is not None else 1.0
         e = np.zeros(8)
-        JC, JT, JK = np.zeros((8, 6)), np.zeros((8, 6)), np.zeros((8, 5))
+        if distortion is not None:
+            e -= distortion[1] @ values.atVector(distortion[0])
+        JC, JT, JK, JS = np.zeros((8, 6)), np.zeros((8, 6)), np.zeros((8, 5)), np.zeros((8, 1))
         Hp, Hl = np.zeros((3, 6), order="F"), np.zeros((3, 3), order="F")
         Dp, Dpt, Dk = np.zeros((2, 6), order="F"), np.zeros((2, 3), order="F"), np.zeros((2, 5), order="F")
         for i in range(4):
-            p = T.transformFrom(local[i], Hp, Hl)
+            p = T.transformFrom(k * local[i], Hp, Hl)
             try:
                 uv = cam.project(p, Dp, Dpt, Dk)
             except RuntimeError:          # behind the camera: a large, flat error
                 e[2 * i:2 * i + 2] = 1e3
                 continue
-            e[2 * i:2 * i + 2] = uv - meas[i]
+            e[2 * i:2 * i + 2] += uv - meas[i]
             JC[2 * i:2 * i + 2] = Dp
             JT[2 * i:2 * i + 2] = Dpt @ Hp
             JK[2 * i:2 * i + 2] = Dk
+            JS[2 * i:2 * i + 2, 0] = Dpt @ Hl @ local[i]
         if jacobians is not None:
             jacobians[0], jacobians[1] = JC, JT
             if fixed is None:
                 jacobians[2] = JK
+            j = 2 if fixed is not None else 3
+            if scale_key is not None:
+                jacobians[j] = JS
+                j += 1
+            if distortion is not None:
+                jacobians[j] = -distortion[1]
         return e
 
     keys = [camera_key, tag_key] if fixed is not None else [camera_key, tag_key, intrinsics_key]
+    if scale_key is not None:
+        keys.append(scale_key)
+    if distortion is not None:
+        keys.append(distortion[0])
     return gtsam.CustomFactor(noise, keys, error)
 
 

@@ -36,9 +36,10 @@ from typing import Iterable, Sequence
 import gtsam
 import numpy as np
 
+from estimation.corner_noise import CornerNoise, measured_corner_noise
 from estimation.fiducials import Detection, tag_object_points
-from estimation.rig_model import (AXIS, BASE, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
-                                  chain_factor, corner_factor, side_ratio, tag_prior_noise, undistort_px)
+from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
+                                  chain_factor, corner_factor, distortion_prior_sigmas, radial_basis, side_ratio, tag_prior_noise, undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.geometry import Pose3, Rot3
 from lab.rig_calibration import RigCalibration
@@ -47,6 +48,7 @@ from lab.structures.borg import BorgModel
 OBSERVATIONS = ("corners", "corner-info", "pose")
 C = gtsam.symbol_shorthand.C   # camera views
 _T = gtsam.symbol_shorthand.T  # tags: T(tag id + GENERATION * generation)
+_S = gtsam.symbol_shorthand.S  # each printed tag's scale error (SlamConfig.tag_scale_sigma)
 GENERATION = 10_000             # a re-placed module's tags are new map elements
 
 
@@ -92,6 +94,10 @@ class SlamConfig:
     # [verification] corner_sigma_px; 0.02 px is 2.5x what the detector achieves on the simulated
     # camera (a simulated run reports it against the truth as corner_rms_px: 0.008 px)
     corner_sigma_px: float = 0.02
+    # the tags' print scale error (relative, 1 sigma): with the corner model each tag gets a scale
+    # variable with this prior, so a tag printed large is not read as a tag nearer the camera
+    # (0: tags exactly their nominal size)
+    tag_scale_sigma: float = 0.0
 
 
 @dataclass
@@ -151,13 +157,66 @@ class SfGraphSlam:
         self.specs: list[tuple] = []
         # a new tag's sightings until the next solve gives it its initial value
         self._pending: dict[int, list[tuple[Pose3, Detection]]] = {}
+        # the corner noise measured from the run's own residuals (corner_noise): each corner factor's
+        # graph index and obliquity scale, and the face-on residuals of those evaluated so far
+        self._corner_factors: list[tuple[int, float]] = []
+        self._residuals_done = 0
+        self._face_on_residuals: list[np.ndarray] = []
+        self._corner_noise: CornerNoise | None = None
+        self._corner_params = 0                          # variables the corners determine (6 per tag and view)
+        # turntable tags whose prior is part of the calibration's joint prior (valued from the start)
+        self._joint_tags: set[int] = set()
         if rig is not None:
-            means, covs = rig.priors(calibration)
-            for key in (AXIS, BASE, MOUNT):
-                f = gtsam.PriorFactorPose3(key, means[key], gtsam.noiseModel.Gaussian.Covariance(covs[key]))
-                self._add(f, ("rig_prior", f, key, means[key]))
-                self._value(key, means[key])
+            if calibration is not None and calibration.joint_covariance is not None:
+                self._joint_prior(rig, calibration)
+            else:
+                means, covs = rig.priors(calibration)
+                for key in (AXIS, BASE, MOUNT):
+                    f = gtsam.PriorFactorPose3(key, means[key], gtsam.noiseModel.Gaussian.Covariance(covs[key]))
+                    self._add(f, ("rig_prior", f, key, means[key]))
+                    self._value(key, means[key])
             self.estimate = gtsam.Values(self.initial)
+
+    def _joint_prior(self, rig: RigGeometry, cal: RigCalibration) -> None:
+        """The rig survey's whole posterior over the axis, base, mount and turntable tags as one
+        Gaussian factor (a LinearContainerFactor: the information matrix about the survey's
+        estimate, in each pose's tangent, evaluated in C++).  Per-variable priors would drop the
+        correlations, and the turntable tags' common error -- the frame every verdict is read in --
+        would count once per tag."""
+        means, _ = rig.priors(cal)
+        blocks = cal.joint_blocks()
+        tags = [int(name) for name, _ in blocks[5:]]
+        keys = [AXIS, BASE, MOUNT, INTRINSICS, DISTORTION] + [self.key(t) for t in tags]
+        values = ([means[AXIS], means[BASE], means[MOUNT], cal3_s2(cal.K), np.array(cal.distortion_correction, float)]
+                  + [cal.turntable_tags[t] for t in tags])
+        at = np.cumsum([0] + [size for _, size in blocks])
+        cov = np.array(cal.joint_covariance, float)
+        # the axis frame's yaw and height are gauge (rig_model.RigGeometry.priors)
+        for i in (2, 5):
+            cov[i, :] = cov[:, i] = 0.0
+            cov[i, i] = GAUGE_SIGMA ** 2
+        info = np.linalg.inv(0.5 * (cov + cov.T))
+        lin = gtsam.GaussianFactorGraph()
+        point = gtsam.Values()
+        for i, (key, value) in enumerate(zip(keys, values)):
+            point.insert(key, value)
+            bi = slice(at[i], at[i + 1])
+            lin.add(gtsam.HessianFactor(key, info[bi, bi], np.zeros(at[i + 1] - at[i]), 0.0))
+            for j in range(i + 1, len(keys)):
+                bj = slice(at[j], at[j + 1])
+                lin.add(gtsam.HessianFactor(key, keys[j], np.zeros((at[i + 1] - at[i],) * 2), info[bi, bj],
+                                            np.zeros(at[i + 1] - at[i]), np.zeros((at[j + 1] - at[j],) * 2),
+                                            np.zeros(at[j + 1] - at[j]), 0.0))
+        f = gtsam.LinearContainerFactor(gtsam.HessianFactor(lin), point)
+        self._add(f, ("as_is", f))
+        for key, value in zip(keys, values):
+            self._value(key, value)
+        self._joint_tags = set(tags)
+        # The corner factors keep the survey's intrinsics fixed: as a variable of every corner
+        # factor, each update moved the focal length past the relinearisation threshold and
+        # re-evaluated every corner factor in Python (a SLAM step 8 -> 52 ms), for a 1-sigma that
+        # did not change at 0.01 mm (the survey's focal length is good to ~0.02 %).  They stay in the
+        # joint prior, unconnected: marginalising them out is exact.
 
     def _turntable_tag_prior(self, tag: int) -> None:
         """The turntable tags fix the structure frame: at their design poses, known to the rig's
@@ -193,6 +252,27 @@ class SfGraphSlam:
     def key(self, tag: int) -> int:
         return _T(tag + GENERATION * self.generation.get(tag, 0))
 
+    def _distortion_key(self) -> bool:
+        """The lens's radial distortion error: from the survey's joint prior, else a prior of the
+        rig's [calibration] distortion_sigma_px at the frame's corners (first corner factor)."""
+        assert self.rig is not None and self.camera is not None
+        if not self.initial.exists(DISTORTION):
+            f = gtsam.PriorFactorVector(DISTORTION, np.zeros(2), gtsam.noiseModel.Diagonal.Sigmas(
+                distortion_prior_sigmas(self.rig.config.distortion_sigma_px, self.camera[0])))
+            self._add(f, ("as_is", f))
+            self._value(DISTORTION, np.zeros(2))
+        return True
+
+    def _scale_key(self, tag: int) -> int:
+        """The tag's print scale variable (one per printed tag, so a re-placed module keeps it),
+        with its prior the first time the tag is seen."""
+        key = _S(tag)
+        if not self.initial.exists(key):
+            f = gtsam.PriorFactorVector(key, np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, self.config.tag_scale_sigma))
+            self._add(f, ("as_is", f))
+            self._value(key, np.zeros(1))
+        return key
+
     def replace_tags(self, tags: Iterable[int]) -> None:
         """The module carrying these tags was re-placed or re-deployed: what was seen of it before
         no longer describes it.  Its tags become new variables (the old ones keep their old
@@ -226,6 +306,7 @@ class SfGraphSlam:
             f = gtsam.PriorFactorPose3(C(k), structure_T_camera, self.camera_noise)
             self._add(f, ("as_is", f))
         self._value(C(k), structure_T_camera)
+        self._corner_params += 6
         c = self.config
         for d in detections:
             if d.tag_id not in self.model.tags:
@@ -237,13 +318,20 @@ class SfGraphSlam:
                 if ratio < MIN_SIDE_RATIO:
                     continue
                 scale = ratio ** -OBLIQUE_EXPONENT
-            spec = ("corners", C(k), self.key(d.tag_id), d.size_m, scale)
+            sk = self._scale_key(d.tag_id) if c.observation == "corners" and c.tag_scale_sigma > 0 else None
+            lens = None
             if c.observation == "corners":
                 assert self.camera is not None
                 K, dist = self.camera
-                self._add(corner_factor(C(k), self.key(d.tag_id), undistort_px(d.corners_px, K, dist),
-                                        tag_object_points(d.size_m), c.corner_sigma_px * scale,
-                                        robust_k=_robust_k(8) if c.huber_k else None, fixed=self._cal), spec)
+                u = undistort_px(d.corners_px, K, dist)
+                if self.rig is not None and self._distortion_key():
+                    lens = (DISTORTION, radial_basis(u, K))
+            spec = ("corners", C(k), self.key(d.tag_id), d.size_m, scale, sk, lens)
+            if c.observation == "corners":
+                self._add(corner_factor(C(k), self.key(d.tag_id), u, tag_object_points(d.size_m), c.corner_sigma_px * scale,
+                                        robust_k=_robust_k(8) if c.huber_k else None, fixed=self._cal,
+                                        scale_key=sk, distortion=lens), spec)
+                self._corner_factors.append((self.graph.size() - 1, scale))
             else:
                 if c.observation == "corner-info":
                     gauss = self._corner_information(d, c.corner_sigma_px * scale)
@@ -258,9 +346,12 @@ class SfGraphSlam:
                          if c.huber_k else gauss)
                 self._add(gtsam.BetweenFactorPose3(C(k), self.key(d.tag_id), d.camera_T_tag, noise), spec)
             if d.tag_id not in self.tags:
+                self._corner_params += 6
                 self.tags.add(d.tag_id)
                 self._pending[self.key(d.tag_id)] = []
-                if self.rig is not None and self.model.tags[d.tag_id].module == "turntable":
+                if d.tag_id in self._joint_tags:
+                    self._pending.pop(self.key(d.tag_id))      # valued with the joint prior
+                elif self.rig is not None and self.model.tags[d.tag_id].module == "turntable":
                     self._turntable_tag_prior(d.tag_id)
             if self.key(d.tag_id) in self._pending:
                 self._pending[self.key(d.tag_id)].append((structure_T_camera, d))
@@ -313,7 +404,7 @@ class SfGraphSlam:
         self.graph.add(factor)
         self.specs.append(spec)
 
-    def _value(self, key: int, value: Pose3) -> None:
+    def _value(self, key: int, value: Pose3 | gtsam.Cal3_S2 | np.ndarray) -> None:
         self._new_values.insert(key, value)
         self.initial.insert(key, value)
 
@@ -374,10 +465,11 @@ class SfGraphSlam:
                 assert self.rig is not None
                 g.add(chain_factor(self.rig, spec[1], spec[2], chain_noise(spec[1]) if chain_noise else None))
             elif kind == "corners":
-                _, ck, tk, size, scale = spec
+                _, ck, tk, size, scale, sk, lens = spec
                 # the measurement is irrelevant to the covariance; only the Jacobians at the truth count
+                # (the lens's basis, read at the corners as measured, moves by < 1 px at the truth)
                 g.add(corner_factor(ck, tk, np.zeros((4, 2)), tag_object_points(size), corner_sigma_px * scale,
-                                    robust_k=None, fixed=self._cal))
+                                    robust_k=None, fixed=self._cal, scale_key=sk, distortion=lens))
         return g
 
     def _marginal(self, tag: int) -> np.ndarray | None:
@@ -399,6 +491,27 @@ class SfGraphSlam:
         self.estimate = self.isam.calculateEstimate()
         self._batch_solved = False
         self._batch_marginals = None
+        self._collect_residuals()
+
+    # ---- the corner noise, measured -----------------------------------------------------------
+    def _collect_residuals(self) -> None:
+        """The face-on reprojection residuals of the corner factors added since the last solve, at
+        the estimate that first includes them (each factor once: O(new factors) per step)."""
+        todo = self._corner_factors[self._residuals_done:]
+        if not todo:
+            return
+        self._residuals_done = len(self._corner_factors)
+        for index, scale in todo:
+            f = self.graph.at(index)
+            if all(self.estimate.exists(k) for k in f.keys()):
+                self._face_on_residuals.append(np.asarray(f.unwhitenedError(self.estimate), float) / scale)
+        if self._face_on_residuals:
+            self._corner_noise = measured_corner_noise(np.concatenate(self._face_on_residuals), self._corner_params,
+                                                       self.config.corner_sigma_px)
+
+    def corner_noise(self) -> CornerNoise | None:
+        """The corner sigma the run's residuals imply (corner model only; None before any)."""
+        return self._corner_noise
 
     def solve_batch(self, max_iterations: int = 100, warm_start: bool = False) -> gtsam.Values:
         """Levenberg–Marquardt over the whole graph from the initial values (studies), or from the
@@ -549,12 +662,17 @@ class SfGraphSlam:
         return self.estimate.exists(self.key(tag))
 
     def tag_covariance(self, tag: int) -> np.ndarray:
-        """Marginal covariance of a tag pose from the solver that made the current estimate."""
+        """Marginal covariance of a tag pose from the solver that made the current estimate, scaled
+        by the a-posteriori variance factor when the corners proved noisier than the graph assumed
+        (never scaled down: the survey's priors do not shrink with the corners)."""
         if self._batch_solved:
             if self._batch_marginals is None:
                 self._batch_marginals = gtsam.Marginals(self.graph, self.estimate)
-            return self._batch_marginals.marginalCovariance(self.key(tag))
-        return self.isam.marginalCovariance(self.key(tag))
+            cov = self._batch_marginals.marginalCovariance(self.key(tag))
+        else:
+            cov = self.isam.marginalCovariance(self.key(tag))
+        noise = self.corner_noise()
+        return cov * noise.covariance_scale if noise is not None else cov
 
     def camera_pose(self, k: int) -> Pose3:
         return self.estimate.atPose3(C(k))

@@ -30,8 +30,11 @@ bright levels are the medians of the image at its windows' two ends, and rows wh
 from them (something crossing the edge), or, on tags with a clear quiet zone, whose quiet zone
 darkens just past the window or whose edge reads short of the tag's contrast (something along
 the edge), are left out with guard rows (`QuadFit.occluded`); `ring_deviation` reads the whole
-black border and quiet zone against the tag's own black and white.  Constants OCCLUSION_* and
-RING_*; docs/fiducials.md, "Occlusion".
+black border and quiet zone against the tag's own black and white.  The tolerances follow the
+frame: a row's at least OCCLUSION_NOISE_SIGMAS of its edge's own spread (a noisy camera), the
+ring's samples clear of their cells' edges by RING_MIN_EDGE_SIGMAS of the tag's edge blur
+(`edge_blur_px`: a blurred lens).  Constants OCCLUSION_* and RING_*; docs/fiducials.md,
+"Occlusion".
 
 Bit reading (`read_bits`, `identify`): the 8x8 cells and the quiet-zone ring around them sampled at
 their centres through the quad's homography, sharpened, and thresholded halfway between planes
@@ -41,13 +44,15 @@ then checked against the dictionary with a Hamming distance of our choosing.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
 import numpy as np
+from scipy.special import ndtr
 
-__all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "identify", "ring_deviation", "MIN_ROWS"]
+__all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "identify", "ring_deviation", "edge_blur_px", "MIN_ROWS"]
 
 CELLS = 8                 # AprilTag 36h11: 6x6 data cells inside a one-cell black border
 MIN_ROWS = 3              # an edge needs this many usable rows (or columns) to be refitted
@@ -74,7 +79,17 @@ OCCLUSION_MAX_DROP = 0.2
 OCCLUSION_FAR_PX = 1.0
 OCCLUSION_MIN_CONTRAST = 0.8
 OCCLUSION_GUARD_ROWS = 3
-RING_MIN_EDGE_PX = 0.9         # ... those at least this far from both edges of their cell
+# ... and, on a noisy frame (or a blurred one, whose windows' ends read less of the contrast), the
+# tolerance is at least this many of the edge's own row-to-row spread (1.4826 MAD of the samples
+# about their medians): noise alone then flags no row, and a strut (0.4 of the contrast and more
+# over the quiet zone) still is
+OCCLUSION_NOISE_SIGMAS = 4.5
+RING_MIN_EDGE_PX = 0.9         # ... those at least this far from both edges of their cell,
+RING_MIN_EDGE_SIGMAS = 1.15    # ... and this many of the tag's edge blur (`edge_blur_px`): at the
+                               # sim's 0.6 px lens (edges 0.65-0.9 px) that is the 0.9 px above, and
+                               # a clean sample loses at most ~0.13 of the contrast to a cell edge's
+                               # blur whatever the lens
+EDGE_BLUR_NEAR_PX = 0.5        # `edge_blur_px`: the contrast across an edge at +-this ...
 RING_DEPTHS_CELLS = (0.3, 0.5)  # the perimeter check's samples, from the black square's edge (`ring_deviation`)
 
 
@@ -306,23 +321,30 @@ def _odd_rows(edge_of: np.ndarray, v_dark: np.ndarray, v_bright: np.ndarray, ok:
               n_edges: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each edge's median dark and bright samples (over its rows with both in the image; NaN for
     fewer than MIN_ROWS), and its rows whose samples differ from those medians by more than
-    OCCLUSION_TOLERANCE of the contrast: something in front of the tag (or a stain, a shadow's
-    edge) crosses the edge there."""
+    OCCLUSION_TOLERANCE of the contrast, or OCCLUSION_NOISE_SIGMAS of the edge's own spread if
+    that is more: something in front of the tag (or a stain, a shadow's edge) crosses the edge
+    there."""
     R = len(edge_of)
     cnt = np.bincount(edge_of, ok, n_edges).astype(np.int64)
     rows = np.bincount(edge_of, minlength=n_edges)
     start = np.cumsum(rows) - rows
-    med = []
-    for v in (v_dark, v_bright):
+
+    def median(v: np.ndarray) -> np.ndarray:
         order = np.lexsort((v, ~ok, edge_of))          # per edge: its usable rows first, by value
         m = v[order[np.clip(start + np.maximum(cnt - 1, 0) // 2, 0, max(R - 1, 0))]] if R else np.zeros(n_edges)
-        med.append(np.where(cnt >= MIN_ROWS, m, np.nan))
-    dark_m, bright_m = med
+        return np.where(cnt >= MIN_ROWS, m, np.nan)
+
+    dark_m, bright_m = median(v_dark), median(v_bright)
     if R == 0:
         return dark_m, bright_m, np.zeros(0, bool)
-    tol = (OCCLUSION_TOLERANCE * (bright_m - dark_m))[edge_of]
+    tol = OCCLUSION_TOLERANCE * (bright_m - dark_m)
+    bad = np.zeros(R, bool)
     with np.errstate(invalid="ignore"):
-        bad = ok & (tol > 0) & ((np.abs(v_dark - dark_m[edge_of]) > tol) | (np.abs(v_bright - bright_m[edge_of]) > tol))
+        for v, m in ((v_dark, dark_m), (v_bright, bright_m)):
+            dev = np.abs(v - m[edge_of])
+            spread = 1.4826 * median(np.where(ok, dev, 0.0))
+            t = np.fmax(tol, OCCLUSION_NOISE_SIGMAS * spread)[edge_of]
+            bad |= ok & (tol[edge_of] > 0) & (dev > t)
     return dark_m, bright_m, bad
 
 
@@ -646,6 +668,48 @@ def _ring_points() -> tuple[np.ndarray, ...]:
             np.concatenate(margin), np.concatenate(adj), np.concatenate(along))
 
 
+def edge_blur_px(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """Each tag's edge blur (N,): the sigma (px) of the Gaussian edge whose contrast across its
+    black square's edges at +-EDGE_BLUR_NEAR_PX is the share it is at +-r of the contrast at
+    +-r, r = one cell less 2.5 px (1 to 2.5 px: clear of the next cell's edge), the medians over
+    nine points along the middle half of each side.  The lens's blur, the pixel's area and the
+    bilinear sampling together, as the ring's samples see them: 0.65-0.9 px on the sim's default
+    frames (lens blur 0.6 px), 1.4-1.7 px with a 1.6 px lens.  Noise and a nearer cell edge bias
+    it little; it is a scale for the checks, not a measurement."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    N = len(q)
+    if N == 0:
+        return np.zeros(0)
+    g = np.asarray(grey, dtype=np.float32)
+    seg = np.roll(q, -1, axis=1) - q
+    u = seg / np.maximum(np.linalg.norm(seg, axis=2, keepdims=True), 1e-9)
+    n_out = np.stack([u[..., 1], -u[..., 0]], axis=2)
+    cell = np.minimum(np.abs(np.sum(np.roll(seg, 1, axis=1) * n_out, axis=2)),
+                      np.abs(np.sum(np.roll(seg, -1, axis=1) * n_out, axis=2))).min(axis=1) / CELLS
+    far = np.clip(cell - 2.5, MIN_REACH_PX, MAX_REACH_PX)                       # (N,)
+    t = np.linspace(0.25, 0.75, 9)
+    on = q[:, :, None, :] + t[None, None, :, None] * seg[:, :, None, :]        # (N, 4, 9, 2)
+    normal = n_out[:, :, None, :]
+
+    def across(r) -> np.ndarray:
+        a, b = on + r * normal, on - r * normal
+        va = _bilinear(g, a[..., 0].ravel(), a[..., 1].ravel())
+        vb = _bilinear(g, b[..., 0].ravel(), b[..., 1].ravel())
+        return np.median((va - vb).reshape(N, -1), axis=1)
+
+    near_c = across(EDGE_BLUR_NEAR_PX)
+    far_c = across(far[:, None, None, None])
+    share = np.clip(near_c / np.maximum(far_c, 1e-6), 0.0, 1.0)
+    # (2 Phi(near / s) - 1) / (2 Phi(far / s) - 1) = share, decreasing in s: bisect on log s
+    lo, hi = np.full(N, math.log(0.1)), np.full(N, math.log(10.0))
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        s = np.exp(mid)
+        f = (2 * ndtr(EDGE_BLUR_NEAR_PX / s) - 1) / (2 * ndtr(far / s) - 1)
+        lo, hi = np.where(f > share, mid, lo), np.where(f > share, hi, mid)
+    return np.exp(0.5 * (lo + hi))
+
+
 def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     """How far each tag's black border and white quiet zone stray from its own black and white,
     along the whole perimeter (N,): the largest shortfall of a sample, as a fraction of the
@@ -653,8 +717,9 @@ def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     in front of it crossing the border or the quiet zone (a strut), a quiet zone narrower than a
     cell or a shadow's edge reads more.  Points a quarter cell apart along the ring, at
     RING_DEPTHS_CELLS from the black square's edge on either side, those in the image (a tag may
-    run off the frame) and at least RING_MIN_EDGE_PX from every edge of their ring cell (on a
-    small tag or one seen very obliquely, the blur of a cell's edges meets in its middle);
+    run off the frame) and at least RING_MIN_EDGE_PX, or RING_MIN_EDGE_SIGMAS of the tag's edge
+    blur (`edge_blur_px`) if that is more, from every edge of their ring cell (on a small tag, one
+    seen very obliquely or through a blurred lens, the blur of a cell's edges meets in its middle);
     quads (N, 4, 2), corner 0 the marker's top-left."""
     q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
     if len(q) == 0:
@@ -670,7 +735,8 @@ def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     n_out = np.stack([u[..., 1], -u[..., 0]], axis=2)
     across = np.minimum(np.abs(np.sum(np.roll(seg, 1, axis=1) * n_out, axis=2)),
                         np.abs(np.sum(np.roll(seg, -1, axis=1) * n_out, axis=2))) / CELLS     # (N, 4)
-    inside &= (across[:, side] * margin[None, :] >= RING_MIN_EDGE_PX) & (across[:, adj] * along[None, :] >= RING_MIN_EDGE_PX)
+    clear = np.maximum(RING_MIN_EDGE_PX, RING_MIN_EDGE_SIGMAS * edge_blur_px(grey, q))[:, None]   # (N, 1)
+    inside &= (across[:, side] * margin[None, :] >= clear) & (across[:, adj] * along[None, :] >= clear)
     dark, bright = _tag_levels(grey, q)
     contrast = np.maximum(bright - dark, 1e-6)[:, None]
     short = np.where(quiet[None, :], bright[:, None] - v, v - dark[:, None]) / contrast

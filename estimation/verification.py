@@ -26,7 +26,7 @@ from typing import Mapping
 
 import numpy as np
 
-from estimation.precision import module_sigma
+from estimation.precision import module_position_covariance, module_sigma
 from estimation.semantics import DeployCheck, closeout_zone
 from lab.geometry import Pose3, pose_error
 from lab.structures.borg import BorgModel
@@ -66,6 +66,7 @@ class Verdict:
     sigma_m: float | None                # 1-sigma position uncertainty of the module (worst direction)
     tags_used: tuple[int, ...]
     sigma_rad: float | None = None       # 1-sigma rotation uncertainty
+    position_covariance: np.ndarray | None = None   # 3x3, structure frame, of the module's position
 
 
 def module_from_tag(model: BorgModel, module: str, tag: int, structure_T_tag: Pose3) -> Pose3:
@@ -100,8 +101,9 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
         tag_T_module = model.tags[tag].structure_T_tag.inverse().compose(m.structure_T_module)
         ms = module_sigma(tag_T_module, cov)
         sigma, sigma_r = ms.position_m, ms.rotation_rad
+        pos_cov = module_position_covariance(estimates[tag], tag_T_module, cov)
     else:
-        sigma, sigma_r = None, None
+        sigma, sigma_r, pos_cov = None, None, None
     note = f" (tag {', '.join(map(str, rejected_here))} rejected as displaced)" if rejected_here else ""
     k = tol.band_sigmas
     sp, sr = sigma or 0.0, sigma_r or 0.0
@@ -110,11 +112,11 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
     over = dt - k * sp > tol.position_m or dr - k * sr > tol.rotation_rad
     inside = dt + k * sp <= tol.position_m and dr + k * sr <= tol.rotation_rad
     if inside:
-        return Verdict(module, "ok", note.strip(" ()"), est, dt, dr, sigma, tuple(usable), sigma_r)
+        return Verdict(module, "ok", note.strip(" ()"), est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)
     if not over:
         reason = (f"within its uncertainty of the tolerance: {dt * 1000:.2f} mm (1σ {sp * 1000:.2f} mm), "
                   f"{math.degrees(dr):.2f} deg (1σ {math.degrees(sr):.2f} deg), tolerance {tol.describe()}")
-        return Verdict(module, "uncertain", reason + note, est, dt, dr, sigma, tuple(usable), sigma_r)
+        return Verdict(module, "uncertain", reason + note, est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)
     reason = (f"out of tolerance: {dt * 1000:.1f} mm (tolerance {tol.position_m * 1000:.1f} mm), "
               f"{math.degrees(dr):.2f} deg (tolerance {math.degrees(tol.rotation_rad):.2f} deg)")
     if m.kind in ("closeout_strut", "closeout_square"):
@@ -124,4 +126,4 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
         axis = m.structure_T_module.rotation().matrix().T @ axis_structure
         lever = max(float(np.linalg.norm(q - m.structure_T_module.translation())) for q in p)
         reason += "; " + closeout_zone(design_T_est, axis, lever).describe()
-    return Verdict(module, "flagged", reason + note, est, dt, dr, sigma, tuple(usable), sigma_r)
+    return Verdict(module, "flagged", reason + note, est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)

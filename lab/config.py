@@ -23,6 +23,7 @@ import numpy as np
 from lab.errors import UserError
 from lab.geometry import Pose3, from_xyzrpy
 from lab import rig_error as rig_errors   # the record is RigError too, like this module's exception
+from lab.imaging import RIG_CAMERA_KEYS, Imaging, parse_imaging
 
 DeviceKind = Literal["turntable", "stewart", "lift", "camera", "ipjr"]
 
@@ -125,6 +126,7 @@ class SimConfig:
     ipjr: dict[str, float] = field(default_factory=dict)
     lift: dict[str, float] = field(default_factory=dict)
     rig_error: rig_errors.RigError = field(default_factory=rig_errors.RigError)   # the true bench vs this file
+    imaging: Imaging = field(default_factory=Imaging)   # [sim.camera] / [sim.tags] imaging keys (lab/imaging.py)
 
 
 @dataclass(frozen=True)
@@ -143,6 +145,9 @@ class CalibrationConfig:
     turntable_tag_sigma_m: float = 0.001
     focal_sigma: float = 0.01                 # relative
     principal_point_sigma_px: float = 5.0
+    # how far the camera file's radial distortion may be from the true lens, as the displacement at
+    # the frame's corners: the graph estimates the difference (two radial terms) with this prior
+    distortion_sigma_px: float = 0.5
     stewart_repeatability_m: float = 0.00002
     stewart_repeatability_rad: float = math.radians(0.002)
     turntable_repeatability_rad: float = math.radians(0.005)
@@ -176,6 +181,10 @@ class VerificationConfig:
     # the detector's face-on corner accuracy on this rig's camera, what the graph assumes (measure
     # it: a simulated run reports corner_rms_px against the truth, `lab calibrate rig` its residual)
     corner_sigma_px: float = 0.02
+    # how well the tags were printed: each tag's size is off by this relative error (1 sigma).  The
+    # graph gives every tag a scale variable with this prior (measure a few printed tags with a
+    # caliper; 0 = printed exactly)
+    tag_scale_sigma: float = 0.001
 
 
 def _verification(t: "_Table") -> VerificationConfig:
@@ -189,7 +198,8 @@ def _verification(t: "_Table") -> VerificationConfig:
     cfg = VerificationConfig(tolerances, t.number("band_sigmas", default=2.0, minimum=0.0, maximum=10.0),
                              t.number("sigma_target_mm", default=0.25, positive=True, maximum=100.0) * 1e-3,
                              t.integer("max_views", default=12, minimum=1, maximum=200),
-                             t.number("corner_sigma_px", default=0.02, positive=True, maximum=5.0))
+                             t.number("corner_sigma_px", default=0.02, positive=True, maximum=5.0),
+                             t.number("tag_scale_percent", default=0.1, minimum=0.0, maximum=5.0) * 1e-2)
     t.done()
     return cfg
 
@@ -205,6 +215,7 @@ _CALIBRATION_KEYS = (
     ("turntable_tag_sigma_mm", 1.0, 1e-3, "turntable_tag_sigma_m"),
     ("focal_sigma_percent", 1.0, 1e-2, "focal_sigma"),
     ("principal_point_sigma_px", 5.0, 1.0, "principal_point_sigma_px"),
+    ("distortion_sigma_px", 0.5, 1.0, "distortion_sigma_px"),
     ("stewart_repeatability_mm", 0.02, 1e-3, "stewart_repeatability_m"),
     ("stewart_repeatability_deg", 0.002, math.pi / 180, "stewart_repeatability_rad"),
     ("turntable_repeatability_deg", 0.005, math.pi / 180, "turntable_repeatability_rad"),
@@ -515,7 +526,7 @@ _SIM_MAXIMA = {"speed_deg_s": 720.0, "speed_mm_s": 1000.0, "settle_s": 60.0, "mi
                "stroke_margin_mm": 100.0, "volts_noise_v": 1.0, "step_scale_sigma": 0.5, "move_sigma_m": 0.01,
                "calibration_sigma_v": 1.0, "start_extension_m": 1.0}
 MAX_SPEEDUP = 1000.0
-_SIM_CAMERA_KEYS = {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "dist", "pixel_noise", "blur_px"}
+_SIM_CAMERA_KEYS = {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "dist", *RIG_CAMERA_KEYS}
 
 
 def _sim(t: _Table) -> SimConfig:
@@ -537,16 +548,24 @@ def _sim(t: _Table) -> SimConfig:
     camera["cx_px"] = cam.number("cx_px", default=(camera["width_px"] - 1) / 2.0)
     camera["cy_px"] = cam.number("cy_px", default=(camera["height_px"] - 1) / 2.0)
     camera["dist"] = cam.vector("dist", n=None, default=[0.0, 0.0, 0.0, 0.0, 0.0])
-    camera["pixel_noise"] = cam.number("pixel_noise", default=2.0, minimum=0.0)
-    camera["blur_px"] = cam.number("blur_px", default=0.6, minimum=0.0)
+    # the imaging keys (lab/imaging.py): omitted ones are the ideal camera's, as before issue 19
+    given = parse_imaging({k: cam._get(k, None) for k in RIG_CAMERA_KEYS if k in cam.data},
+                          t._get("tags", {}), lambda key, problem: t.error(key, problem),
+                          camera_keys=RIG_CAMERA_KEYS)
     cam.done()
+    imaging = Imaging().with_overrides(given)
+    camera["pixel_noise"], camera["blur_px"] = imaging.pixel_noise, imaging.blur_px
+    f_m = imaging.focal_length_m(camera["fx_px"])
+    if imaging.focus_distance_m and imaging.focus_distance_m < 2 * f_m:
+        raise t.error("camera.focus_distance_m", f"must be 0 (everything in focus) or beyond twice the focal length "
+                                                 f"({2 * f_m:g} m = 2 fx pixel_pitch_um), got {imaging.focus_distance_m}")
     rig_error = rig_errors.parse_rig_error(t._get("rig_error", {}), lambda key, problem: t.error(
         f"rig_error.{key}" if key else "rig_error", problem))
     t.done()
     if not sections["lift"]["min_mm"] < sections["lift"]["max_mm"]:
         raise t.error("lift.max_mm", f"must be greater than lift.min_mm ({sections['lift']['min_mm']} mm)")
     return SimConfig(seed, speedup, borg_n, pty, sections["turntable"], sections["stewart"], camera,
-                     sections["ipjr"], sections["lift"], rig_error)
+                     sections["ipjr"], sections["lift"], rig_error, imaging)
 
 
 # --------------------------------------------------------------------------------------------

@@ -8,6 +8,15 @@ Frames (docs/architecture.md): `world` is where the turntable plate sits at enco
 (rotation about x and y) and where it crosses the plate (x, y) mean anything; its yaw and height
 are fixed at zero by convention.  Covariances are 6x6 in GTSAM's tangent order (rotation, then
 translation) at the estimate; the intrinsics' is 4x4 over (fx, fy, cx, cy).
+
+The marginals alone would lose what matters most: the survey locates the three rig poses and the
+turntable tags together, so their errors are correlated (the tags' glue errors move the frame they
+all define; a shift of the base trades against a shift of the mount; the focal length against
+the distance to everything).  `joint_covariance` keeps the whole covariance over `JOINT_POSES`
+(6x6 blocks in the same tangent order), the intrinsics (5: fx, fy, skew, cx, cy, GTSAM's Cal3_S2),
+the lens's radial distortion correction (2: dk1, dk2), then each turntable tag in id order (6 each), and a run takes it as one prior: twelve tags'
+marginals used as independent priors count the frame's common error twelve times (a module's
+1-sigma 3x too small), and intrinsics held exact hide the focal length's share.
 """
 
 from __future__ import annotations
@@ -26,6 +35,7 @@ from lab.geometry import Pose3, from_xyzrpy, to_xyzrpy
 
 FORMAT = "lab.rig_calibration/1"
 POSES = ("platform_T_camera", "world_T_base", "world_T_axis")
+JOINT_POSES = ("world_T_axis", "world_T_base", "platform_T_camera")   # the joint covariance's first blocks
 
 
 @dataclass(frozen=True)
@@ -41,6 +51,16 @@ class RigCalibration:
     views: int = 0
     rig: str = ""
     created: str = ""
+    # over JOINT_POSES, "K" (5), then sorted(turntable_tags); None: marginals only
+    joint_covariance: np.ndarray | None = None
+    # the face-on corner noise the survey's residuals implied: a run's graph starts from it
+    corner_sigma_px: float = float("nan")
+    # the true lens's radial terms minus the camera file's (dk1, dk2), as the survey found them
+    distortion_correction: tuple[float, float] = (0.0, 0.0)
+
+    def joint_blocks(self) -> tuple[tuple[str | int, int], ...]:
+        """What the joint covariance's blocks are, in order, with their sizes."""
+        return joint_blocks(self.turntable_tags)
 
     def sigmas(self) -> dict[str, dict[str, float]]:
         """1-sigma of each quantity in the units a person reads (mm, deg, px)."""
@@ -62,12 +82,16 @@ class RigCalibration:
         return {
             "format": FORMAT, "rig": self.rig, "created": self.created or time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "views": self.views, "rms_px": self.rms_px,
+            **({"corner_sigma_px": self.corner_sigma_px} if math.isfinite(self.corner_sigma_px) else {}),
+            "distortion_correction": [float(x) for x in self.distortion_correction],
             **{name: pose(getattr(self, name), self.covariance[name]) for name in POSES},
             "camera": {"fx_px": float(self.K[0, 0]), "fy_px": float(self.K[1, 1]), "cx_px": float(self.K[0, 2]),
                        "cy_px": float(self.K[1, 2]), "covariance": np.asarray(self.covariance["K"], float).tolist()},
             "turntable_tags": {str(t): pose(p, self.turntable_tag_covariance.get(t))
                                for t, p in sorted(self.turntable_tags.items())},
             "sigmas": self.sigmas(),
+            **({"joint_covariance": np.asarray(self.joint_covariance, float).tolist()}
+               if self.joint_covariance is not None else {}),
         }
 
     def save(self, path: str | Path) -> Path:
@@ -76,6 +100,11 @@ class RigCalibration:
         tmp.write_text(json.dumps(self.to_json(), indent=1) + "\n")
         tmp.replace(p)
         return p
+
+
+def joint_blocks(turntable_tags: Any) -> tuple[tuple[str | int, int], ...]:
+    return (*((name, 6) for name in JOINT_POSES), ("K", 5), ("distortion", 2),
+            *((int(t), 6) for t in sorted(turntable_tags)))
 
 
 def _pose(d: Any, where: str, src: str) -> tuple[Pose3, np.ndarray | None]:
@@ -135,6 +164,32 @@ def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
         tags[tid], c = _pose(v, f"turntable_tags.{k}", p)
         if c is not None:
             tag_covs[tid] = c
+    try:
+        dk = tuple(float(x) for x in data.get("distortion_correction", (0.0, 0.0)))
+        if len(dk) != 2 or not all(map(math.isfinite, dk)):
+            raise ValueError
+    except (TypeError, ValueError):
+        raise UserError(f"rig calibration {p}: distortion_correction: expected [dk1, dk2], got "
+                        f"{data.get('distortion_correction')!r}") from None
+    corner_sigma = float("nan")
+    if "corner_sigma_px" in data:
+        try:
+            corner_sigma = float(data["corner_sigma_px"])
+            if not (math.isfinite(corner_sigma) and 0 < corner_sigma <= 5):
+                raise ValueError
+        except (TypeError, ValueError):
+            raise UserError(f"rig calibration {p}: corner_sigma_px: expected a number in (0, 5] px, "
+                            f"got {data['corner_sigma_px']!r}") from None
+    joint = None
+    if "joint_covariance" in data:
+        n = sum(size for _, size in joint_blocks(tags))
+        try:
+            joint = np.asarray(data["joint_covariance"], dtype=float)
+            if joint.shape != (n, n) or not np.all(np.isfinite(joint)):
+                raise ValueError
+        except (TypeError, ValueError):
+            raise UserError(f"rig calibration {p}: joint_covariance: expected a finite {n}x{n} matrix "
+                            f"(the rig poses, the intrinsics and {len(tags)} turntable tags)") from None
     return RigCalibration(poses["platform_T_camera"], poses["world_T_base"], poses["world_T_axis"], K, covs, tags,
                           tag_covs, float(data.get("rms_px", float("nan"))), int(data.get("views", 0)),
-                          str(data.get("rig", "")), str(data.get("created", "")))
+                          str(data.get("rig", "")), str(data.get("created", "")), joint, corner_sigma, dk)

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from lab.errors import UserError
+from lab.imaging import parse_imaging
 from lab.rig_error import RigError, parse_rig_error
 
 BORG_FAULT_KINDS = ("partial_deploy", "tag_displaced", "module_offset")
@@ -43,8 +44,26 @@ class TrussNoise:
 
 @dataclass(frozen=True)
 class CameraNoise:
-    pixel_noise: float = 2.0       # grey levels, std
-    blur_px: float = 0.6           # Gaussian blur sigma
+    """A scenario's `[camera]` and `[tags]` keys (`lab/imaging.py`); None: the rig's own value
+    (`[sim.camera]`, `[sim.tags]`), so a scenario changes only what it names."""
+
+    pixel_noise: float | None = None         # read noise, grey levels, std
+    blur_px: float | None = None             # Gaussian blur sigma at the focus distance, px
+    full_well_e: float | None = None         # electrons at white (0: no shot noise)
+    focus_distance_m: float | None = None    # 0: everything in focus
+    f_number: float | None = None
+    vignetting: float | None = None          # fraction of brightness lost at the frame's corners
+    lighting_variation: float | None = None  # uneven light across the frame and from tag to tag
+    jpeg_quality: int | None = None          # 0: lossless PNG
+    distortion_error_px: float | None = None # true lens vs its calibration file, at the corners
+    print_scale_sigma: float | None = None   # [tags]: each printed tag's relative size error
+    flatness_m: float | None = None          # [tags]: each tag's bow at its centre
+
+    def overrides(self) -> dict[str, Any]:
+        """The keys this scenario sets: {key: value}."""
+        from dataclasses import asdict
+
+        return {k: v for k, v in asdict(self).items() if v is not None}
 
 
 @dataclass(frozen=True)
@@ -72,8 +91,6 @@ def _err(source: str, key: str, problem: str) -> UserError:
 MAX_OFFSET_M = 1.0            # structure faults: offsets and displacements
 MAX_ROTATION_RAD = 3.2        # a little over pi: any orientation, never a wound-up angle
 MAX_SIGMA_M = 1.0             # truss strut / ruler noise (the IPJR paper studies 0.1 m on 1 m struts)
-MAX_PIXEL_NOISE = 100.0       # grey levels
-MAX_BLUR_PX = 20.0
 MAX_FAULT_COMMANDS = 1_000_000
 
 
@@ -121,7 +138,7 @@ def _check_keys(source: str, where: str, table: dict, allowed: set[str]) -> None
 
 
 def parse_scenario(data: dict[str, Any], source: str = "<dict>") -> Scenario:
-    _check_keys(source, "", data, {"seed", "borg", "truss", "device", "camera", "rig_error"})
+    _check_keys(source, "", data, {"seed", "borg", "truss", "device", "camera", "tags", "rig_error"})
     seed = data.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
         raise _err(source, "seed", f"expected a non-negative integer, got {seed!r}")
@@ -183,14 +200,9 @@ def parse_scenario(data: dict[str, Any], source: str = "<dict>") -> Scenario:
         sigma_measure_m=_number(source, "truss.sigma_measure_m", truss.get("sigma_measure_m", TrussNoise.sigma_measure_m), positive=True,
                                 maximum=MAX_SIGMA_M),
     )
-    cam = _table(source, "camera", data.get("camera", {}))
-    _check_keys(source, "camera", cam, {"pixel_noise", "blur_px"})
-    cn = CameraNoise(
-        pixel_noise=_number(source, "camera.pixel_noise", cam.get("pixel_noise", CameraNoise.pixel_noise),
-                            minimum=0.0, maximum=MAX_PIXEL_NOISE),
-        blur_px=_number(source, "camera.blur_px", cam.get("blur_px", CameraNoise.blur_px), minimum=0.0,
-                        maximum=MAX_BLUR_PX),
-    )
+    # [camera] and [tags]: only the keys given; the rest stay the rig's ([sim.camera], [sim.tags])
+    cn = CameraNoise(**parse_imaging(data.get("camera", {}), data.get("tags", {}),
+                                     lambda key, problem: _err(source, key, problem)))
     rig_error = None
     if "rig_error" in data:
         rig_error = parse_rig_error(data["rig_error"], lambda key, problem: _err(

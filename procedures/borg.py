@@ -107,7 +107,11 @@ class BorgProcedure:
         if max_views is not None and not 1 <= max_views <= 200:
             raise UserError(f"--max-views must be in 1..200, got {max_views}")
         estimator_config = dict(estimator_config or {})
+        # the graph's corner noise: as given, else what the rig calibration measured, else the rig's
+        # [verification] value until a survey measures it
+        self._corner_sigma_given = "corner_sigma_px" in estimator_config
         estimator_config.setdefault("corner_sigma_px", ver.corner_sigma_px)
+        estimator_config.setdefault("tag_scale_sigma", ver.tag_scale_sigma)
         corner_sigma = float(estimator_config["corner_sigma_px"])
         self.precision = PrecisionTarget(sigma_m=sigma_target_mm * 1e-3 if sigma_target_mm is not None else ver.sigma_target_m,
                                          max_views=max_views if max_views is not None else ver.max_views,
@@ -132,6 +136,7 @@ class BorgProcedure:
             from lab.rig_calibration import load_rig_calibration
 
             self.rig_calibration = load_rig_calibration(cal_file)
+            self._take_corner_sigma(estimator_config, self.rig_calibration.corner_sigma_px)
         self.rig_survey = (self.rig_calibration is None) if rig_survey is None else bool(rig_survey)
         self.uncalibrated = uncalibrated
         if uncalibrated:
@@ -332,9 +337,15 @@ class BorgProcedure:
 
         tags = {t: (s.structure_T_tag, s.size_m) for t, s in self.model.tags.items() if s.module == "turntable"}
         sol = solve_rig(views, self.rig_geometry, self.intrinsics.dist, tags,
-                        turntable_tags=self.model.turntable.tag_ids, rig_name=self.bench.rig.name)
+                        turntable_tags=self.model.turntable.tag_ids, rig_name=self.bench.rig.name,
+                        tag_scale_sigma=float(self.measure.config.get("tag_scale_sigma", 0.0)))
         self.rig_calibration = sol.calibration
+        self._take_corner_sigma(self.measure.config, sol.corner_sigma_px)
         return sol
+
+    def _take_corner_sigma(self, config: dict[str, Any], measured_px: float) -> None:
+        if not self._corner_sigma_given and math.isfinite(measured_px):
+            config["corner_sigma_px"] = float(measured_px)
 
     def _rig_model(self):
         return None if self.uncalibrated else self.rig_geometry
@@ -344,7 +355,9 @@ class BorgProcedure:
         from procedures.rig_survey import against_truth
 
         out: dict[str, Any] = {"views": sol.calibration.views, "rms_px": sol.calibration.rms_px,
-                               "problems": list(sol.problems), "estimate": describe(sol.calibration)}
+                               "problems": list(sol.problems), "estimate": describe(sol.calibration),
+                               "measured": {"corner_sigma_px": sol.corner_sigma_px,
+                                            "turntable_tag_sigma_m": sol.turntable_tag_sigma_m}}
         if self.bench.simulated:
             out["truth_error"], out["nees"] = against_truth(sol.calibration, self.bench.sim.world)
         return out
@@ -403,7 +416,7 @@ class BorgProcedure:
         import gtsam
 
         from estimation.precision import bound_covariances, module_sigma
-        from estimation.rig_model import AXIS, BASE, LIFT, MOUNT
+        from estimation.rig_model import AXIS, BASE, INTRINSICS, LIFT, MOUNT, cal3_s2
         from estimation.sf_graphslam import GENERATION
         from dataclasses import replace
 
@@ -427,7 +440,8 @@ class BorgProcedure:
                                  turntable_tag_sigma_m=None if calibrated else max(e.turntable_tag_sigma_m, floor))
         truth = gtsam.Values()
         rig = {AXIS: world.true_rig.world_T_axis, BASE: world.true_rig.world_T_base,
-               MOUNT: world.true_rig.platform_T_camera, LIFT: world.true_rig.world_T_lift}
+               MOUNT: world.true_rig.platform_T_camera, LIFT: world.true_rig.world_T_lift,
+               INTRINSICS: cal3_s2(world.camera.K)}
         for key in graph.keyVector():
             sym = gtsam.Symbol(key)
             ch, idx = chr(sym.chr()), sym.index()
@@ -437,6 +451,11 @@ class BorgProcedure:
                 truth.insert(key, self._true_cameras[idx])
             elif ch == "t":
                 truth.insert(key, world.borg.structure_T_tag(idx % GENERATION))
+            elif ch == "d":
+                truth.insert(key, np.zeros(2))   # the lens correction enters linearly: any value
+            elif ch == "s":
+                # a tag's print scale: the Jacobians hardly depend on it (1e-3 of their size)
+                truth.insert(key, np.zeros(1))
         tag = tags[0]
         try:
             cov = bound_covariances(graph, truth, [slam.key(tag)])[slam.key(tag)]
@@ -570,7 +589,8 @@ class BorgProcedure:
                 "tolerance_rad": tol.rotation_rad, "tags_seen": r.tags_seen, "attempts": r.attempts,
                 "sigma_rotation_rad": r.sigma_rotation_rad, "views": r.views, "predicted_sigma_m": r.predicted_sigma_m,
                 "bound_position_m": r.bound_position_m, "bound_rotation_rad": r.bound_rotation_rad,
-                "bound_position_rms_m": r.bound_position_rms_m}
+                "bound_position_rms_m": r.bound_position_rms_m, "position_covariance_m2": r.position_covariance_m2,
+                "position_error_vector_m": r.position_error_vector_m, "position_nees": r.position_nees}
 
     def _truth_errors(self, r: ModuleResult) -> None:
         est = self.measure.module_estimate(r.name)
@@ -578,6 +598,10 @@ class BorgProcedure:
             return
         truth = self.bench.sim.world.borg.structure_T_module(r.name)
         r.position_error_m, r.rotation_error_rad = pose_error(est, truth)
+        e = est.translation() - truth.translation()
+        r.position_error_vector_m = [float(x) for x in e]
+        if r.position_covariance_m2 is not None:
+            r.position_nees = float(e @ np.linalg.solve(np.asarray(r.position_covariance_m2), e))
 
     # ---- checkpoints -------------------------------------------------------------------------
     def checkpoint(self) -> dict[str, Any]:
@@ -648,6 +672,8 @@ class BorgProcedure:
                 # simulation: the detector's corner error against the truth (per coordinate), the
                 # noise the bound assumes
                 "corner_rms_px": float(np.sqrt(np.mean(self._corner_sq))) if self._corner_sq else None,
+                # the corner noise the run's own residuals imply, and what the graph assumed
+                "corner_noise": noise.to_json() if (noise := self.measure.slam.corner_noise()) is not None else None,
                 "rig_calibration_file": str(self.bench.rig.calibration.file) if self.bench.rig.calibration.file else None}
 
     def stop_devices(self) -> list[str]:

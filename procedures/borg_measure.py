@@ -39,6 +39,9 @@ class ModuleResult:
     bound_position_m: float | None = None     # simulation: the Cramér-Rao bound of the same views
     bound_rotation_rad: float | None = None
     bound_position_rms_m: float | None = None  # sqrt(trace): the expected RMS of the 3-D position error
+    position_covariance_m2: list[list[float]] | None = None   # 3x3, structure frame, as the verdict read it
+    position_error_vector_m: list[float] | None = None        # estimate - truth, structure frame (simulation)
+    position_nees: float | None = None        # simulation: error' covariance^-1 error (dimension 3)
 
     def to_json(self) -> dict[str, Any]:
         return {k: v for k, v in self.__dict__.items()}
@@ -58,7 +61,9 @@ class Measurement:
         self.slam = SfGraphSlam(model, SlamConfig(semantic=self.config.get("semantic", True),
                                                   observation=self.config.get("observation", "corners"),
                                                   corner_sigma_px=float(self.config.get("corner_sigma_px",
-                                                                                        SlamConfig.corner_sigma_px))),
+                                                                                        SlamConfig.corner_sigma_px)),
+                                                  tag_scale_sigma=float(self.config.get("tag_scale_sigma",
+                                                                                        SlamConfig.tag_scale_sigma))),
                                 rig=rig, calibration=calibration, camera=(K, np.asarray(intrinsics.dist, float)))
         self.detector_camera = (np.asarray(K, float), np.asarray(intrinsics.dist, float))
         self.tolerances = Tolerances()
@@ -159,7 +164,8 @@ class Measurement:
         self._verdicts[module] = v
         return ModuleResult(module, v.verdict, v.reason, deviation_m=v.deviation_m, deviation_rad=v.deviation_rad,
                             sigma_position_m=v.sigma_m, sigma_rotation_rad=v.sigma_rad, tags_seen=[t for t in self.model.module_by_name[module].tags
-                                                                   if t in estimates])
+                                                                   if t in estimates],
+                            position_covariance_m2=None if v.position_covariance is None else v.position_covariance.tolist())
 
     def camera_estimates(self) -> list[tuple[Pose3, np.ndarray | None]]:
         """The estimated camera poses (structure frame) of the last step's views, with covariances."""

@@ -1,11 +1,15 @@
-"""Camera intrinsic calibration with a ChArUco board (docs/calibration.md).
+"""Camera intrinsic calibration with a ChArUco board, or a plain chessboard (docs/calibration.md).
 
 The pieces, from pixels to the intrinsics file the camera driver reads:
 
-- `BoardSpec` / `parse_board`: the printed board, as a one-line spec `COLSxROWS:SQUARE_MM:MARKER_MM[:DICT]`.
+- `BoardSpec` / `parse_board`: the printed board, as a one-line spec `COLSxROWS:SQUARE_MM:MARKER_MM[:DICT]`;
+  `ChessboardSpec`: a plain chessboard, `chessboard:COLSxROWS:SQUARE_MM` (inner corners), for
+  photographs taken without a ChArUco board (tests/data/chessboard: OpenCV's sample views).
 - `BoardDetector`: `cv2.aruco.CharucoDetector` finds the markers, interpolates and sub-pixel refines
   the chessboard corners; `CharucoBoard.matchImagePoints` pairs them with board points.  A frame
   with too few corners, or corners on one line, is rejected with the reason.
+  `ChessboardDetector`: `cv2.findChessboardCorners` (then `findChessboardCornersSB`), the whole
+  board or nothing, corners refined by `cv2.cornerSubPix`.
 - `calibrate`: `cv2.calibrateCameraExtended` on the usable views (k3 fixed unless asked: a mild lens
   does not need it and it over-fits), then views whose reprojection error stands out (an occluded
   corner, motion blur, a mis-refined corner) are dropped one at a time and the fit repeated.
@@ -33,7 +37,8 @@ from drivers.camera import Intrinsics
 from lab.errors import UserError
 
 __all__ = [
-    "DEFAULT_BOARD", "BoardSpec", "parse_board", "Detection", "BoardDetector", "ViewResult",
+    "DEFAULT_BOARD", "BoardSpec", "ChessboardSpec", "parse_board", "Detection", "BoardDetector",
+    "ChessboardDetector", "make_detector", "ViewResult",
     "CalibrationResult", "NotEnoughViews", "calibrate", "coverage", "compare_intrinsics",
     "CalibrationSession", "read_frames", "capture_live", "IMAGE_SUFFIXES", "VIEW_HINTS",
 ]
@@ -70,6 +75,8 @@ class BoardSpec:
     marker_m: float
     dictionary: str = "DICT_5X5_100"
     legacy: bool = False
+    kind = "charuco"            # the recorder's `<kind>_detection` records; not a field
+    label = "ChArUco"
 
     @property
     def n_corners(self) -> int:
@@ -94,15 +101,74 @@ class BoardSpec:
         return board
 
 
-def parse_board(spec: str) -> BoardSpec:
+@dataclass(frozen=True)
+class ChessboardSpec:
+    """A plain chessboard: `cols` x `rows` *inner* corners (OpenCV's pattern size, so a board of
+    10 x 7 squares is 9x6), squares of `square_m`.  No markers: the whole board must be in view,
+    and its corners are numbered row by row from the one `findChessboardCorners` reports first
+    (the board's symmetry leaves that choice open; each view's pose absorbs it, the intrinsics do
+    not depend on it)."""
+
+    cols: int
+    rows: int
+    square_m: float
+    kind = "chessboard"
+    label = "chessboard"
+
+    @property
+    def n_corners(self) -> int:
+        return self.cols * self.rows
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        return (self.cols + 1) * self.square_m, (self.rows + 1) * self.square_m
+
+    def text(self) -> str:
+        return f"chessboard:{self.cols}x{self.rows}:{self.square_m * 1000:g}"
+
+    def object_points(self) -> np.ndarray:
+        """(cols * rows, 3) m, row by row, z = 0: the order findChessboardCorners reports."""
+        i, j = np.meshgrid(np.arange(self.cols), np.arange(self.rows))
+        return np.column_stack([i.ravel(), j.ravel(), np.zeros(i.size)]) * self.square_m
+
+
+CHESSBOARD_FORMAT = "chessboard:COLSxROWS:SQUARE_MM (inner corners), e.g. chessboard:9x6:25"
+
+
+def _parse_chessboard(spec: str, parts: list[str]) -> ChessboardSpec:
+    def bad(problem: str) -> UserError:
+        return UserError(f"board spec {spec!r}: {problem}")
+
+    if len(parts) != 3:
+        raise bad(f"expected {CHESSBOARD_FORMAT}")
+    try:
+        cols, rows = (int(d) for d in parts[1].lower().split("x"))
+    except ValueError:
+        raise bad(f"inner corners {parts[1]!r}: expected {CHESSBOARD_FORMAT}") from None
+    if not (2 <= cols <= 100 and 2 <= rows <= 100):
+        raise bad(f"inner corners {cols}x{rows}: each side needs 2..100 inner corners")
+    try:
+        square_mm = float(parts[2])
+    except ValueError:
+        raise bad(f"square size {parts[2]!r} must be a number of millimetres; expected {CHESSBOARD_FORMAT}") from None
+    if not (math.isfinite(square_mm) and square_mm > 0):
+        raise bad(f"square size {parts[2]} mm must be positive")
+    return ChessboardSpec(cols, rows, square_mm / 1000.0)
+
+
+def parse_board(spec: str) -> BoardSpec | ChessboardSpec:
     """`COLSxROWS:SQUARE_MM:MARKER_MM[:DICT][:legacy]`, e.g. `9x6:30:22:DICT_5X5_100` (squares
-    counted along the board's long and short side; sizes in millimetres as printed)."""
-    fmt = "expected COLSxROWS:SQUARE_MM:MARKER_MM[:DICT][:legacy], e.g. " + DEFAULT_BOARD
+    counted along the board's long and short side; sizes in millimetres as printed): a ChArUco
+    board.  `chessboard:COLSxROWS:SQUARE_MM`, e.g. `chessboard:9x6:25`: a plain chessboard of
+    COLS x ROWS inner corners."""
+    fmt = f"expected COLSxROWS:SQUARE_MM:MARKER_MM[:DICT][:legacy], e.g. {DEFAULT_BOARD}, or {CHESSBOARD_FORMAT}"
 
     def bad(problem: str) -> UserError:
         return UserError(f"board spec {spec!r}: {problem}")
 
     parts = [p.strip() for p in str(spec).strip().split(":")]
+    if parts[0].lower() == "chessboard":
+        return _parse_chessboard(spec, parts)
     legacy = False
     if parts and parts[-1].lower() == "legacy":
         legacy = True
@@ -195,6 +261,58 @@ class BoardDetector:
         return Detection(label, w, h, markers, corners, ids, obj, usable=not reason, reason=reason)
 
 
+# The sub-pixel window reaches this fraction of the shortest square side either side of a corner
+# (clamped to CHESSBOARD_WINDOW_PX): clear of the neighbouring corners and their blur, where a
+# lens's curvature of the edges is still small.  On OpenCV's sample photographs (tests/data/
+# chessboard) a fixed 11 px half-window, what OpenCV's calibration sample uses, reaches past
+# the shortest squares (19-22 px) and gives 0.41 px RMS; a quarter of the side gives 0.19 px.
+CHESSBOARD_WINDOW_FRACTION = 0.25
+CHESSBOARD_WINDOW_PX = (2, 11)
+
+
+class ChessboardDetector:
+    """A plain chessboard (`ChessboardSpec`): every inner corner or none.  `cv2.findChessboardCorners`
+    (adaptive threshold, normalised image), failing that `cv2.findChessboardCornersSB`; the corners
+    then refined by `cv2.cornerSubPix` with a half-window a quarter of the frame's shortest square."""
+
+    def __init__(self, board: ChessboardSpec, min_corners: int = DEFAULT_MIN_CORNERS) -> None:
+        if min_corners < 4:
+            raise UserError(f"--min-corners {min_corners}: a view needs at least 4 corners to constrain a pose")
+        self.spec = board
+        self.min_corners = min(int(min_corners), board.n_corners)
+        self._object = board.object_points()
+
+    def detect(self, image: np.ndarray, label: str) -> Detection:
+        img = np.asarray(image)
+        if img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        h, w = img.shape[:2]
+        pattern = (self.spec.cols, self.spec.rows)
+        found, c = cv2.findChessboardCorners(
+            img, pattern, cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if not found:
+            found, c = cv2.findChessboardCornersSB(img, pattern, cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+        if not found or c is None or len(c) != self.spec.n_corners:
+            return Detection(label, w, h, 0, np.zeros((0, 2)), np.zeros(0, int), np.zeros((0, 3)), usable=False,
+                             reason=f"no {self.spec.cols}x{self.spec.rows} chessboard found (every inner corner "
+                                    f"must be in view)")
+        grid = np.asarray(c, np.float64).reshape(self.spec.rows, self.spec.cols, 2)
+        spacing = min(np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
+                      np.linalg.norm(np.diff(grid, axis=0), axis=2).min())
+        half = int(np.clip(int(CHESSBOARD_WINDOW_FRACTION * spacing), *CHESSBOARD_WINDOW_PX))
+        crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
+        c = cv2.cornerSubPix(img, np.asarray(c, np.float32).reshape(-1, 1, 2), (half, half), (-1, -1), crit)
+        corners = np.asarray(c, np.float64).reshape(-1, 2)
+        return Detection(label, w, h, 0, corners, np.arange(len(corners)), self._object.copy(), usable=True)
+
+
+def make_detector(board: BoardSpec | ChessboardSpec, min_corners: int = DEFAULT_MIN_CORNERS):
+    """The detector for `board`'s kind: `BoardDetector` (ChArUco) or `ChessboardDetector`."""
+    if isinstance(board, ChessboardSpec):
+        return ChessboardDetector(board, min_corners)
+    return BoardDetector(board, min_corners)
+
+
 # ---- calibration ------------------------------------------------------------------------------
 
 
@@ -215,11 +333,14 @@ class ViewResult:
 @dataclass
 class CalibrationResult:
     intrinsics: Intrinsics
+    # OpenCV's figure (calibrateCamera's return value): sqrt(mean over every used corner of the
+    # squared distance, in px, between the detected corner and its reprojection); per axis it is
+    # this / sqrt(2).
     rms_px: float
     std: dict[str, float]            # 1-sigma of PARAM_NAMES (0 for a parameter held fixed)
     views: list[ViewResult]
     coverage: float                  # fraction of COVERAGE_GRID image cells holding a used corner
-    board: BoardSpec
+    board: BoardSpec | ChessboardSpec
     fit_k3: bool
     warnings: list[str] = field(default_factory=list)
     truth: dict[str, Any] | None = None    # compare_intrinsics against a known model (simulation)
@@ -295,7 +416,7 @@ def _fit(views: Sequence[Detection], size: tuple[int, int], flags: int):
     return float(rms), K, dist.ravel(), rvecs, std_in.ravel(), per_view.ravel()
 
 
-def calibrate(detections: Sequence[Detection], board: BoardSpec, *, fit_k3: bool = False,
+def calibrate(detections: Sequence[Detection], board: BoardSpec | ChessboardSpec, *, fit_k3: bool = False,
               min_frames: int = DEFAULT_MIN_FRAMES) -> CalibrationResult:
     """Intrinsics from the usable detections (all of one image size).  Raises NotEnoughViews when
     fewer than `min_frames` views are usable, saying why the others were rejected."""
@@ -366,7 +487,7 @@ def calibrate(detections: Sequence[Detection], board: BoardSpec, *, fit_k3: bool
         if std[name] > 0.01 * size[i]:
             warnings.append(f"{name} uncertain by {std[name]:.1f} px: take more views from varied angles")
 
-    source = f"lab calibrate camera, {len(used)} ChArUco views (board {board.text()}), RMS {rms:.3f} px"
+    source = f"lab calibrate camera, {len(used)} {board.label} views (board {board.text()}), RMS {rms:.3f} px"
     intr = Intrinsics(np.asarray(K, dtype=float), np.asarray(dist[:5], dtype=float), size[0], size[1], rms, source)
     return CalibrationResult(intr, rms, std, views, cov, board, fit_k3, warnings)
 
@@ -404,10 +525,10 @@ class CalibrationSession:
     every frame is a step with its image and detection, and the result a final step with the
     intrinsics as foxglove.CameraCalibration."""
 
-    def __init__(self, board: BoardSpec, *, min_corners: int = DEFAULT_MIN_CORNERS, recorder: Any = None,
-                 camera: str = "camera") -> None:
+    def __init__(self, board: BoardSpec | ChessboardSpec, *, min_corners: int = DEFAULT_MIN_CORNERS,
+                 recorder: Any = None, camera: str = "camera") -> None:
         self.board = board
-        self.detector = BoardDetector(board, min_corners)
+        self.detector = make_detector(board, min_corners)
         self.recorder = recorder
         self.camera = camera
         self.detections: list[Detection] = []
@@ -445,7 +566,7 @@ class CalibrationSession:
             with self.recorder.step(f"view {self._steps}", self._steps, {"frame": label}):
                 self.recorder.log_image(topics.CAMERA_IMAGE, image, t_s, self.camera)
                 d = self.detector.detect(image, label)
-                self.recorder.log_json("charuco_detection", {
+                self.recorder.log_json(f"{self.board.kind}_detection", {
                     "frame": label, "markers": d.markers, "corners": d.corners.round(3).tolist(),
                     "ids": d.ids.tolist(), "usable": d.usable, "reason": d.reason}, t_s)
         self.detections.append(d)

@@ -157,7 +157,7 @@ def start_sim_bench(rig: Rig | None = None, scenario: Scenario | None = None, *,
                 bench.urls[name] = server.url
             elif kind == "camera":
                 if not path or path == "/":
-                    raise UserError(f"simulated camera {name}: url {url!r} needs a snapshot path, e.g. /frame.png")
+                    raise UserError(f"simulated camera {name}: url {url!r} needs a snapshot path, e.g. /frame.jpg")
                 server = HttpDeviceServer(name, camera_routes(world, name, path), faults, host=host, port=port).start()
                 bench.urls[name] = server.url + path
             else:

@@ -23,17 +23,27 @@ tags with a corner behind the near plane or a face pointing away are skipped):
    edge, an approximation only within a blur width of a cell corner).  A one-cell ring outside the
    quiet zone is transparent, so the same weights give the tag's coverage (alpha) and the
    background shows through in proportion.
-3. Gaussian pixel noise, then 8-bit BGR.
+   A bowed tag (`TagLook.bow_m`) moves each pixel's point from where its ray meets the flat plane
+   to where it meets the bowed surface, before step 2.  The blur is the lens's own, or with a
+   `Defocus` the lens's own combined with the thin lens's circle of confusion at the tag's depth.
+   A tag's black and white levels are times its light (`TagLook.gain`).
+3. Whatever `render_tags`'s overlay draws into that noise-free image (the truss's struts and
+   nodes, `sim_devices.render_truss`, in front of and behind the tags by the tags' depth buffer).
+4. The scene's radiance (tags, truss and background alike) times a gain map (vignetting, the light
+   across the frame), then sensor noise: photon shot noise (variance signal * 255 / full well,
+   grey levels^2) and read noise, then 8-bit BGR.  (JPEG, when the camera sends it, is the camera's: `sim_devices.camera`.)
 
 The background (a grey level, or an image of the frame that is blurred like the tags) is not
 distorted: it is taken to be what the camera sees behind the tags.
 
-Known limitations: no lighting or shading model (the tag's black and white levels are constant),
-no motion blur, no rolling shutter, no occlusion by anything other than other tags (the truss is
-drawn by `sim_devices.render_truss`, through `render_tags`'s overlay and the depth buffer
-`render_grey` keeps), no vignetting;
-a tag partly behind the camera is dropped whole rather than clipped; the blur is applied to each
-tag and not across an occluding tag's outline.
+Known limitations: no shading model beyond a tag's one light level (no glare, no specular
+reflection, no shadows), no motion blur, no rolling shutter, no fixed-pattern noise or hot pixels,
+no occlusion by anything other than other tags and the truss (the truss is drawn by
+`sim_devices.render_truss`, through `render_tags`'s overlay and the depth buffer `render_grey`
+keeps: the plane of each tag's corners, a bowed tag's bow left out of it); a tag partly behind the
+camera is dropped whole rather than clipped; the blur is applied to each tag at its centre's depth
+(not per pixel across a steeply inclined tag) and not across an occluding tag's outline; the
+background is blurred by the lens's own blur only.
 """
 
 from __future__ import annotations
@@ -41,7 +51,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -49,7 +59,9 @@ from scipy.special import ndtr
 
 from lab.geometry import Pose3
 
-__all__ = ["TagToRender", "render_tags", "render_grey", "tag_corners_px", "pixel_edge_response", "QUIET_ZONE_CELLS"]
+__all__ = ["TagToRender", "TagLook", "Defocus", "render_tags", "render_grey", "tag_corners_px", "pixel_edge_response",
+           "vignetting_gain", "lighting_field", "distortion_with_error", "QUIET_ZONE_CELLS",
+           "COC_DIAMETER_PER_SIGMA"]
 
 # AprilTag 36h11: a 6x6 data grid inside a one-cell black border = 8 cells across the black square.
 _CELLS = 8
@@ -62,6 +74,111 @@ _NEAR_PLANE_M = 0.02
 _TABLE_STEP_PX = 0.001
 
 TagToRender = tuple[int, float, Pose3]  # (tag id, black-square edge in m, camera_T_tag)
+
+# Defocus blurs are rounded to this (px) so that the per-tag blurs share response tables.
+_DEFOCUS_STEP_PX = 0.005
+# A defocus blur disc's diameter over the sigma of the Gaussian drawn for it: 4 matches the disc's
+# second moment (a uniform disc of radius R has sigma R/2 along any axis), and the 10-90 % width of
+# the edge it makes to within 10 %.
+COC_DIAMETER_PER_SIGMA = 4.0
+
+
+@dataclass(frozen=True)
+class TagLook:
+    """How one printed tag really is and is lit; the defaults are an ideal tag.
+
+    gain: the light on the tag (its black and white levels are times this).  bow_m: how far the
+    tag's centre stands off the plane of its corners, along its face normal (+: towards the
+    camera side of the face); the surface is z = bow_m (1 - (mix x^2 + (1 - mix) y^2) / h^2) in
+    the tag frame, h the black square's half-edge, so its four corners stay in the plane (the pose
+    the tag's corners give is the tag's pose) while its middle bows: mix 1 bends it about the tag's
+    y axis alone (a cylinder), 0.5 is a dome."""
+
+    gain: float = 1.0
+    bow_m: float = 0.0
+    bow_mix: float = 0.5
+
+
+@dataclass(frozen=True)
+class Defocus:
+    """A thin lens focused at `focus_distance_m` with aperture `f_number` and focal length
+    `focal_length_m`: a point at depth d (m, along the optical axis) is a disc of diameter
+    c = f^2 / (N (s - f)) |d - s| / d on the sensor, c fx / f pixels.  `sigma_px` draws it as a
+    Gaussian of sigma c / COC_DIAMETER_PER_SIGMA, combined in quadrature with the lens's own blur
+    (`blur_sigma_px`, what a point in focus gets)."""
+
+    focus_distance_m: float
+    f_number: float
+    focal_length_m: float
+
+    def coc_px(self, depth_m: float, fx_px: float) -> float:
+        """Diameter of the blur disc of a point at `depth_m`, in pixels."""
+        s, f, d = self.focus_distance_m, self.focal_length_m, float(depth_m)
+        if not s > f:
+            raise ValueError(f"focus distance {s} m must be beyond the focal length {f} m")
+        return f * float(fx_px) / (self.f_number * (s - f)) * abs(d - s) / max(d, 1e-9)
+
+    def sigma_px(self, depth_m: float, fx_px: float, blur_sigma_px: float) -> float:
+        return math.hypot(float(blur_sigma_px), self.coc_px(depth_m, fx_px) / COC_DIAMETER_PER_SIGMA)
+
+
+def vignetting_gain(width: int, height: int, fraction: float) -> np.ndarray:
+    """(height, width) float32: 1 at the frame's centre falling as the squared radius to 1 - fraction
+    at the centres of its four corner pixels."""
+    xs = (np.arange(width, dtype=np.float32) - (width - 1) / 2.0) / max((width - 1) / 2.0, 1e-9)
+    ys = (np.arange(height, dtype=np.float32) - (height - 1) / 2.0) / max((height - 1) / 2.0, 1e-9)
+    a = (width - 1) ** 2 / float((width - 1) ** 2 + (height - 1) ** 2)   # share of the corner radius^2 along x
+    r2 = a * xs[None, :] ** 2 + (1.0 - a) * ys[:, None] ** 2            # (r / r_corner)^2
+    return (1.0 - float(fraction) * r2).astype(np.float32)
+
+
+def lighting_field(width: int, height: int, variation: float, rng: np.random.Generator, waves: int = 4) -> np.ndarray:
+    """(height, width) float32: a smooth seeded light level across the frame, 1 +- `variation` at
+    most -- a few plane waves of at most one cycle across the frame, random in direction, phase and
+    weight, their sum shifted to mean 0 and scaled to peak 1."""
+    p = rng.uniform(-1.0, 1.0, waves)        # cycles across the frame's width
+    q = rng.uniform(-1.0, 1.0, waves)        # ... and height
+    phase = rng.uniform(0.0, 2 * math.pi, waves)
+    weight = rng.normal(0.0, 1.0, waves)
+    if variation <= 0:
+        return np.ones((height, width), np.float32)
+    x = np.arange(width, dtype=np.float64) / width
+    y = np.arange(height, dtype=np.float64) / height
+    field = np.zeros((height, width), np.float64)
+    for k in range(waves):   # cos(a + b) = cos a cos b - sin a sin b: two outer products per wave
+        ax, by = 2 * math.pi * p[k] * x + phase[k], 2 * math.pi * q[k] * y
+        field += weight[k] * (np.cos(by)[:, None] * np.cos(ax)[None, :] - np.sin(by)[:, None] * np.sin(ax)[None, :])
+    field -= field.mean()
+    field /= max(float(np.abs(field).max()), 1e-12)
+    return (1.0 + float(variation) * field).astype(np.float32)
+
+
+def distortion_with_error(K: np.ndarray, dist: Sequence[float] | np.ndarray, width: int, height: int,
+                          error_px: float, sign: float = 1.0, k2_share: float = 0.0) -> np.ndarray:
+    """A lens's true distortion coefficients when its calibration file says `dist`: k1 and k2 moved
+    so that the ideal points the calibration puts at the four corners of the frame land, on average,
+    `error_px` pixels away (through K).  `sign` says outwards (+) or inwards (-), `k2_share` (0..1)
+    how much of it is k2's (r^5) rather than k1's (r^3); the shift is radial and grows from the
+    centre to the corners either way.  Distortion is linear in its coefficients, so the displacement
+    is exact, not a first-order estimate."""
+    K = np.asarray(K, dtype=float).reshape(3, 3)
+    d = np.zeros(5) if dist is None else np.asarray(dist, dtype=float).ravel().copy()
+    if d.size < 5:
+        d = np.concatenate([d, np.zeros(5 - d.size)])
+    if error_px == 0:
+        return d
+    corners = np.array([[0.0, 0.0], [width - 1.0, 0.0], [width - 1.0, height - 1.0], [0.0, height - 1.0]])
+    xy = cv2.undistortPointsIter(corners.reshape(-1, 1, 2), K, d, None, None,
+                                 (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)).reshape(-1, 2)
+    r2 = (xy ** 2).sum(axis=1)
+    r0 = float(np.sqrt(r2.mean()))
+    reach = np.hypot(K[0, 0] * xy[:, 0], K[1, 1] * xy[:, 1])       # px per unit of radial scale change
+    w = float(np.clip(k2_share, 0.0, 1.0))
+    shape = (1.0 - w) * r2 + w * r2 ** 2 / r0 ** 2                  # the scale change per unit of kappa
+    kappa = float(error_px) / float(np.mean(reach * shape))
+    d[0] += math.copysign(1.0, sign) * (1.0 - w) * kappa
+    d[1] += math.copysign(1.0, sign) * w * kappa / r0 ** 2
+    return d
 
 
 @lru_cache(maxsize=1)
@@ -201,12 +318,36 @@ def _axis_weights(f: np.ndarray, inv_g: np.ndarray, table, k: int) -> np.ndarray
     return np.diff(_lookup(table, (offsets - f[None, :]) * inv_g[None, :]), axis=0)
 
 
+def _bowed(X: np.ndarray, Y: np.ndarray, gx: np.ndarray, gy: np.ndarray, K: np.ndarray, R: np.ndarray,
+           look: TagLook, half_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where each pixel's ray meets the bowed tag, given where it meets the flat plane (X, Y, tag
+    frame, m).  The ray in the tag frame is o + l e (e = R^T K^-1 (gx, gy, 1)); on the flat plane it
+    is at p0, and it meets the surface z(p) where p = p0 + z(p) e_xy / e_z: a fixed point, found by
+    iterating (each step shrinks the error by the surface's slope times the ray's obliquity, 1e-2 or
+    less for a tag bowed by a few tenths of a millimetre: three steps leave 1e-6 of the bow)."""
+    A = R.T @ np.linalg.inv(K)
+    ez = A[2, 0] * gx + A[2, 1] * gy + A[2, 2]
+    ez = np.where(np.abs(ez) > 1e-12, ez, np.nan)
+    rx = (A[0, 0] * gx + A[0, 1] * gy + A[0, 2]) / ez
+    ry = (A[1, 0] * gx + A[1, 1] * gy + A[1, 2]) / ez
+    a, b = look.bow_mix / half_m ** 2, (1.0 - look.bow_mix) / half_m ** 2
+    # the shape holds on the card; beyond it (where rays near the plane's horizon meet it kilometres
+    # off) the surface is held at the card edge's height, so the iteration stays bounded there
+    reach = 2.0 * half_m
+    x, y = X, Y
+    for _ in range(3):
+        cx, cy = np.clip(x, -reach, reach), np.clip(y, -reach, reach)
+        z = look.bow_m * (1.0 - a * cx * cx - b * cy * cy)
+        x, y = X + z * rx, Y + z * ry
+    return x, y
+
+
 def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: np.ndarray, dist: np.ndarray,
               tag_id: int, size_m: float, M: np.ndarray, black: float, white: float, blur: float,
-              depth: np.ndarray | None = None) -> None:
+              look: TagLook | None = None, depth: np.ndarray | None = None) -> None:
     """Composite one tag into `img` (grey levels, float32), in place; with `depth`, also keep the
-    tag plane's depth (m along the optical axis) where the tag covers more than half a pixel and is
-    nearer than what `depth` holds."""
+    tag plane's depth (m along the optical axis; the plane of its corners, a bow left out) where the
+    tag covers more than half a pixel and is nearer than what `depth` holds."""
     height, width = img.shape
     R, t = M[:3, :3], M[:3, 3]
     cells = _marker_cells(tag_id)                          # (n, n): quiet zone + black square
@@ -222,6 +363,8 @@ def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: n
     px, _ = cv2.projectPoints(np.column_stack([outline, np.zeros(len(outline))]), rvec, t.copy(), K, dist)
     px = px.reshape(-1, 2)
     pad = int(math.ceil(0.71 + 5.0 * blur)) + 1      # the pixel response's reach, and a pixel
+    if look is not None and look.bow_m:              # a bowed tag's middle may stand out of its outline
+        pad += int(math.ceil(abs(look.bow_m) * max(K[0, 0], K[1, 1]) / max(float(t[2]) - half, _NEAR_PLANE_M)))
     x0 = max(int(np.floor(px[:, 0].min())) - pad, 0)
     y0 = max(int(np.floor(px[:, 1].min())) - pad, 0)
     x1 = min(int(np.ceil(px[:, 0].max())) + pad + 1, width)
@@ -238,8 +381,12 @@ def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: n
     w = Hinv[2, 0] * gx + Hinv[2, 1] * gy + Hinv[2, 2]
     # rays beyond the plane's horizon (w <= 0 for a plane in front) do not meet it: park them far off
     w = np.where(w > 1e-12, w, np.nan)
-    u = np.nan_to_num(((Hinv[0, 0] * gx + Hinv[0, 1] * gy + Hinv[0, 2]) / w + half) / cell_m, nan=-1e3)
-    v = np.nan_to_num((half - (Hinv[1, 0] * gx + Hinv[1, 1] * gy + Hinv[1, 2]) / w) / cell_m, nan=-1e3)
+    X = (Hinv[0, 0] * gx + Hinv[0, 1] * gy + Hinv[0, 2]) / w
+    Y = (Hinv[1, 0] * gx + Hinv[1, 1] * gy + Hinv[1, 2]) / w
+    if look is not None and look.bow_m:
+        X, Y = _bowed(X, Y, gx, gy, K, R, look, size_m / 2.0)
+    u = np.nan_to_num((X + half) / cell_m, nan=-1e3)
+    v = np.nan_to_num((half - Y) / cell_m, nan=-1e3)
     du_y, du_x = np.gradient(u)
     dv_y, dv_x = np.gradient(v)
     g_u = np.hypot(du_x, du_y)                             # cells per pixel across edges of constant u
@@ -306,13 +453,17 @@ def render_grey(
     black_level: float = 25.0,
     white_level: float = 225.0,
     blur_sigma_px: float = 0.6,
+    defocus: Defocus | None = None,
+    looks: Mapping[int, TagLook] | None = None,
     depth: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The noise-free image `render_tags` starts from, in grey levels, before noise and rounding to
-    8 bits: (height, width) float32.  Studies use it to tell the sensor's quantisation from the
-    rest.  `depth`: a (height, width) float32 array the caller filled with +inf; each tag drawn
-    writes its plane's depth (m along the optical axis) where it covers more than half a pixel,
-    the nearest kept (what `sim_devices.render_truss` tests the truss against)."""
+    """The noise-free image `render_tags` starts from, in grey levels, before the light's gain,
+    noise and rounding to 8 bits: (height, width) float32.  Studies use it to tell the sensor's
+    quantisation from the rest.  defocus: blur each tag by its depth (`Defocus`; None: blur_sigma_px
+    everywhere); looks: tag id -> `TagLook` (its light, its bow; absent ids are ideal tags).
+    `depth`: a (height, width) float32 array the caller filled with +inf; each tag drawn writes its
+    plane's depth (m along the optical axis) where it covers more than half a pixel, the nearest
+    kept (what `sim_devices.render_truss` tests the truss against)."""
     K = np.asarray(K, dtype=float).reshape(3, 3)
     if width <= 0 or height <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
@@ -348,7 +499,12 @@ def render_grey(
         visible.append((float(np.linalg.norm(t)), int(tag_id), float(size_m), M))
 
     for _, tag_id, size_m, M in sorted(visible, key=lambda v: -v[0]):
-        _draw_tag(img, ideal, K, d, tag_id, size_m, M, black_level, white_level, blur_sigma_px, depth)
+        look = looks.get(tag_id) if looks else None
+        blur = blur_sigma_px
+        if defocus is not None:
+            blur = round(defocus.sigma_px(M[2, 3], K[0, 0], blur_sigma_px) / _DEFOCUS_STEP_PX) * _DEFOCUS_STEP_PX
+        g = 1.0 if look is None else look.gain
+        _draw_tag(img, ideal, K, d, tag_id, size_m, M, black_level * g, white_level * g, blur, look, depth)
     return img
 
 
@@ -365,30 +521,58 @@ def render_tags(
     blur_sigma_px: float = 0.6,
     noise_sigma: float = 2.0,
     rng: np.random.Generator | None = None,
+    defocus: Defocus | None = None,
+    looks: Mapping[int, TagLook] | None = None,
+    gain: np.ndarray | None = None,
+    full_well_e: float = 0.0,
     overlay: Callable[[np.ndarray, np.ndarray], None] | None = None,
 ) -> np.ndarray:
     """Render AprilTag 36h11 tags seen by a camera.
 
     K: 3x3 intrinsics; dist: OpenCV distortion coefficients (k1, k2, p1, p2[, k3...]) or None;
     tags: (tag id, black-square edge in m, camera_T_tag) with the tag frame x right, y up, z out of
-    the face.  background: a gray level (0-255) or an image of the frame's size.  noise_sigma is in
-    gray levels; blur_sigma_px is the defocus blur (Gaussian sigma, px).  `overlay(grey, depth)`,
-    if given, draws more of the scene (the truss: `sim_devices.render_truss`) into the noise-free
-    grey image in place, against the tags' depth buffer (`render_grey`), before the noise.
-    Returns an (height, width, 3) uint8 BGR image.
+    the face.  background: a gray level (0-255) or an image of the frame's size.  blur_sigma_px is
+    the lens's blur (Gaussian sigma, px), at the focus distance if `defocus` is given (then each
+    tag is blurred for its depth, `Defocus`); looks: per tag id, its light and bow (`TagLook`).
+    `overlay(grey, depth)`, if given, draws more of the scene (the truss: `sim_devices.render_truss`)
+    into the noise-free grey image in place, against the tags' depth buffer (`render_grey`), before
+    the gain and the noise: it is lit and vignetted as the tags are.
+    gain: (height, width) factors on the scene's radiance (vignetting, uneven light), before the
+    noise.  noise_sigma: the read noise, grey levels; full_well_e: electrons at white (255), adding
+    photon shot noise of variance signal * 255 / full_well_e grey levels^2 (0: none).  Returns an
+    (height, width, 3) uint8 BGR image.  Without defocus, looks, gain and shot noise, and with no
+    overlay or one that draws nothing, the image and the draws from `rng` are what they were before
+    those existed.
     """
     depth = None if overlay is None else np.full((height, width), np.inf, np.float32)
     img = render_grey(K, dist, width, height, tags, background=background, black_level=black_level,
-                      white_level=white_level, blur_sigma_px=blur_sigma_px, depth=depth)
+                      white_level=white_level, blur_sigma_px=blur_sigma_px, defocus=defocus, looks=looks,
+                      depth=depth)
     if overlay is not None:
         overlay(img, depth)
-    if noise_sigma > 0:
+    if gain is not None:
+        if gain.shape != img.shape:
+            raise ValueError(f"gain map is {gain.shape[1]}x{gain.shape[0]}, the frame is {width}x{height}")
+        img *= gain
+    if full_well_e < 0:
+        raise ValueError(f"full well must be >= 0 electrons, got {full_well_e}")
+    if noise_sigma > 0 or full_well_e > 0:
         g = rng if rng is not None else np.random.default_rng()
         # cv2.randn is ~4x faster than numpy's normal for a full frame; seeding it from `rng`
         # keeps the image a function of the inputs (it does reseed OpenCV's global RNG).
         noise = np.empty(img.shape, np.float32)
         cv2.setRNGSeed(int(g.integers(2**31 - 1)))
-        cv2.randn(noise, 0.0, float(noise_sigma))
+        if full_well_e > 0:
+            # photons: Poisson, variance = mean electrons, drawn as its normal limit (a white pixel
+            # holds thousands); in grey levels signal * 255 / full_well, plus the read noise's
+            cv2.randn(noise, 0.0, 1.0)
+            sd = np.maximum(img, 0.0)
+            sd *= np.float32(255.0 / full_well_e)
+            sd += np.float32(float(noise_sigma) ** 2)
+            np.sqrt(sd, out=sd)
+            noise *= sd
+        else:
+            cv2.randn(noise, 0.0, float(noise_sigma))
         img += noise
     out = np.clip(np.rint(img), 0, 255).astype(np.uint8)  # round, not truncate: 110 must stay 110
     return cv2.cvtColor(out, cv2.COLOR_GRAY2BGR)

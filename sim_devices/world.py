@@ -20,7 +20,16 @@
   and nodes: `BorgTruth.truss`, drawn in every frame by `sim_devices.render_truss`, in front of the
   tags they hide), per-module pose errors, partial deployments, displaced tags;
 - the lab's lamp (`LIGHT_WORLD`), which shades the truss;
-- each IPJR's actuator (`sim_devices.ipjr.IpjrActuator`), and the strut it is attached to.
+- each IPJR's actuator (`sim_devices.ipjr.IpjrActuator`), and the strut it is attached to;
+- the camera as it really images (`TrueCamera`, `lab/imaging.py`: the rig's `[sim.camera]` and
+  `[sim.tags]` with the scenario's `[camera]` / `[tags]` keys replacing theirs): the true lens
+  (focal scale, principal point and a distortion that differs from the calibration file by
+  `distortion_error_px` at the frame's corners), its depth of field, vignetting and the light
+  across the frame (one gain map per world), shot and read noise; and every tag as printed and lit:
+  its size off by its print scale (`printed_size_m`: `tags_in_view` gives the size as printed, the
+  pose stays the tag's centre and corners' plane), its bow and its light level (`tag_look`).  The
+  truss is imaged by the same camera: blurred for its depth, vignetted and lit by the gain map,
+  and under the same noise as the tags.
 
 Procedures use it in simulation to act as the operator (place a module, attach an IPJR) and to
 score their estimates against the truth.  It never reads anything the drivers compute.
@@ -30,7 +39,9 @@ does not change the others' numbers.
 
 Left out: errors of the Stewart joint positions and leg encoders (the platform's own kinematic
 calibration), the structure's placement on the plate (the structure frame is the plate's), thermal
-drift, and lens distortion error (the calibration file's distortion is the true one)."""
+drift; of the imaging, what `sim_devices/render.py` leaves out (glare, shadows, motion blur, rolling
+shutter, fixed-pattern noise), and light that changes as the structure turns (the light field is
+fixed in the frame, each tag's level fixed per tag)."""
 
 from __future__ import annotations
 
@@ -45,11 +56,13 @@ import numpy as np
 from lab.config import Rig
 from lab.errors import UserError
 from lab.geometry import Pose3, Rot3, to_xyzrpy
+from lab.imaging import IDEAL, Imaging
 from lab.rig_error import RigError
 from lab.scenario import BorgFault, Scenario
 from lab.structures.borg import BorgModel, build_borg
 from sim_devices.ipjr import IpjrActuator
 from sim_devices.motion import Axis
+from sim_devices.render import Defocus, TagLook, distortion_with_error, lighting_field, vignetting_gain
 from sim_devices.stewart import platform_pose
 from sim_devices.truss_geometry import TrussOccluders, in_camera, truss_occluders
 
@@ -59,6 +72,8 @@ LIGHT_WORLD = np.array([-0.45, 0.25, 0.86]) / np.linalg.norm([-0.45, 0.25, 0.86]
 
 # Independent random streams (the k in default_rng([seed, k])).
 _STREAM_CAMERA, _STREAM_TT_TAGS, _STREAM_MOTION, _STREAM_LIFT, _STREAM_IPJR = 1, 2, 3, 4, 100
+# issue 19's imaging: the lens's distortion error, the light across the frame, each printed tag
+_STREAM_LENS, _STREAM_LIGHT, _STREAM_TAG_PRINT = 5, 6, 7
 
 
 @dataclass(frozen=True)
@@ -227,12 +242,30 @@ class BorgTruth:
 
 @dataclass(frozen=True)
 class TrueCamera:
+    """The camera as it really is.  K and dist are the true lens (the rig's focal scale, principal
+    point offset and distortion error applied), never told to the software: the calibration file
+    and the camera's /intrinsics.json hold `nominal_K`, `nominal_dist` ([sim.camera] as written)."""
+
     K: np.ndarray
     dist: np.ndarray
     width_px: int
     height_px: int
     pixel_noise: float
     blur_px: float
+    imaging: Imaging = IDEAL
+    nominal_K: np.ndarray | None = None
+    nominal_dist: np.ndarray | None = None
+
+    @property
+    def jpeg_quality(self) -> int:
+        return self.imaging.jpeg_quality
+
+    def defocus(self) -> Defocus | None:
+        """The lens's depth of field (None: everything in focus)."""
+        im = self.imaging
+        if im.focus_distance_m <= 0:
+            return None
+        return Defocus(im.focus_distance_m, im.f_number, im.focal_length_m(float(self.K[0, 0])))
 
 
 class SimWorld:
@@ -303,16 +336,33 @@ class SimWorld:
         # -- the camera
         self.camera: TrueCamera | None = None
         self._camera_rng = np.random.default_rng([self.seed, _STREAM_CAMERA])
+        self._gain: np.ndarray | None = None
+        self._looks: dict[int, TagLook] = {}
+        self._print_scale: dict[int, float] = {}
         if rig.camera:
             c = sim.camera
+            # the rig's imaging, with the keys the scenario names replaced (lab/imaging.py)
+            imaging = sim.imaging.with_overrides(self.scenario.camera.overrides())
             f = self.rig_error.focal_scale
             du, dv = self.rig_error.principal_point_offset_px
+            K0 = np.array([[c["fx_px"], 0.0, c["cx_px"]], [0.0, c["fy_px"], c["cy_px"]], [0.0, 0.0, 1.0]])
             K = np.array([[c["fx_px"] * f, 0.0, c["cx_px"] + du], [0.0, c["fy_px"] * f, c["cy_px"] + dv],
                           [0.0, 0.0, 1.0]])
-            noise = self.scenario.camera if scenario is not None else None
-            self.camera = TrueCamera(K, np.asarray(c["dist"], dtype=float), int(c["width_px"]), int(c["height_px"]),
-                                     noise.pixel_noise if noise else c["pixel_noise"],
-                                     noise.blur_px if noise else c["blur_px"])
+            dist0 = np.asarray(c["dist"], dtype=float)
+            dist = dist0
+            if imaging.distortion_error_px > 0:
+                lens = np.random.default_rng([self.seed, _STREAM_LENS])
+                sign, share = (1.0 if lens.random() < 0.5 else -1.0), float(lens.uniform(0.0, 1.0))
+                dist = distortion_with_error(K0, dist0, int(c["width_px"]), int(c["height_px"]),
+                                             imaging.distortion_error_px, sign, share)
+            f_m = imaging.focal_length_m(float(K[0, 0]))
+            if imaging.focus_distance_m and imaging.focus_distance_m < 2 * f_m:
+                raise UserError(f"camera focus distance {imaging.focus_distance_m} m is within twice the focal "
+                                f"length ({2 * f_m:g} m): a lens cannot focus there")
+            self.camera = TrueCamera(K, dist, int(c["width_px"]), int(c["height_px"]), imaging.pixel_noise,
+                                     imaging.blur_px, imaging, K0, dist0)
+            if self.borg is not None:
+                self._draw_tag_prints(imaging)
 
         # -- the IPJRs
         self.ipjrs: dict[str, IpjrActuator] = {}
@@ -327,6 +377,46 @@ class SimWorld:
                 volts_extended=cfg.volts_extended + rng.normal(0.0, p["calibration_sigma_v"]),
                 volts_noise_v=p["volts_noise_v"], step_scale=1.0 + rng.normal(0.0, p["step_scale_sigma"]),
                 move_sigma_m=p["move_sigma_m"], rng=rng)
+
+    def _draw_tag_prints(self, imaging: Imaging) -> None:
+        """Each tag as printed and lit: its size error, its bow, its light, from its own seeded stream
+        (one per tag id, so a tag is the same tag whatever else the world holds).  Every draw is
+        made whatever the keys, so changing one key does not change the others' numbers."""
+        assert self.borg is not None
+        for tid in self.borg.model.tags:
+            rng = np.random.default_rng([self.seed, _STREAM_TAG_PRINT, tid])
+            scale, light, bow_sign, mix = rng.normal(), rng.uniform(-1.0, 1.0), rng.random(), rng.random()
+            self._print_scale[tid] = 1.0 + imaging.print_scale_sigma * float(np.clip(scale, -4.0, 4.0))
+            look = TagLook(gain=1.0 + imaging.lighting_variation * float(light),
+                           bow_m=imaging.flatness_m * (1.0 if bow_sign < 0.5 else -1.0), bow_mix=float(mix))
+            if look.gain != 1.0 or look.bow_m != 0.0:
+                self._looks[tid] = look
+
+    def tag_look(self, tag: int) -> TagLook:
+        """How tag `tag` is printed and lit (its light level, its bow); an ideal tag by default."""
+        return self._looks.get(tag, TagLook())
+
+    def printed_size_m(self, tag: int) -> float:
+        """The true edge of tag `tag`'s black square: its design size times its print scale."""
+        assert self.borg is not None
+        return self.borg.model.tags[tag].size_m * self._print_scale.get(tag, 1.0)
+
+    def gain_map(self) -> np.ndarray | None:
+        """The scene radiance's factor per pixel (vignetting times the light across the frame), made
+        once per world; None when both are off."""
+        cam = self.camera
+        assert cam is not None
+        im = cam.imaging
+        if im.vignetting == 0 and im.lighting_variation == 0:
+            return None
+        with self._lock:
+            if self._gain is None:
+                g = vignetting_gain(cam.width_px, cam.height_px, im.vignetting)
+                if im.lighting_variation > 0:
+                    g *= lighting_field(cam.width_px, cam.height_px, im.lighting_variation,
+                                        np.random.default_rng([self.seed, _STREAM_LIGHT]))
+                self._gain = g
+            return self._gain
 
     # -- truth queries ------------------------------------------------------------------------------
     def turntable_angle_rad(self) -> float:
@@ -401,14 +491,17 @@ class SimWorld:
         return self.world_T_structure().compose(self.borg.structure_T_tag(tag))
 
     def tags_in_view(self) -> list[tuple[int, float, Pose3]]:
-        """(id, size, camera_T_tag) of every tag that exists now (the renderer culls the rest)."""
+        """(id, size, camera_T_tag) of every tag that exists now (the renderer culls the rest): the
+        size as printed (`printed_size_m`), the pose the tag's centre and corners' plane's."""
         if self.borg is None:
             return []
         return self._tags_seen_from(self.world_T_camera().inverse().compose(self.world_T_structure()))
 
     def _tags_seen_from(self, camera_T_structure: Pose3) -> list[tuple[int, float, Pose3]]:
+        """(id, size as printed, camera_T_tag) of every tag that exists now, seen from a camera at
+        `camera_T_structure` (what `tags_in_view` and `render` give for the camera's true pose)."""
         assert self.borg is not None
-        return [(tid, self.borg.model.tags[tid].size_m, camera_T_structure.compose(self.borg.structure_T_tag(tid)))
+        return [(tid, self.printed_size_m(tid), camera_T_structure.compose(self.borg.structure_T_tag(tid)))
                 for tid in self.borg.visible_tag_ids()]
 
     def reseed_camera(self, seed: Any) -> None:
@@ -422,27 +515,42 @@ class SimWorld:
             self._tt_repeat = self._stewart_repeat = self._lift_repeat = None
 
     def render(self) -> np.ndarray:
-        """The image the camera sees now (BGR uint8): the tags that exist, and the truss built so
-        far in front of and behind them (always: a real camera cannot look through struts)."""
+        """The image the camera's sensor reads now (BGR uint8), before the camera encodes it (JPEG at
+        the camera's jpeg_quality: `sim_devices.camera.encode_frame`): the tags that exist, and the
+        truss built so far in front of and behind them (always: a real camera cannot look through
+        struts), both through the same lens, light and noise."""
         from sim_devices.render import render_tags
-        from sim_devices.render_truss import draw_truss
 
         cam = self.camera
         if cam is None:
             raise UserError(f"rig {self.rig.name!r} has no camera")
         with self._lock:
             rng = np.random.default_rng(self._camera_rng.integers(2**63))
+        imaging = dict(blur_sigma_px=cam.blur_px, noise_sigma=cam.pixel_noise, rng=rng, defocus=cam.defocus(),
+                       looks=self._looks or None, gain=self.gain_map(), full_well_e=cam.imaging.full_well_e)
         if self.borg is None:
-            return render_tags(cam.K, cam.dist, cam.width_px, cam.height_px, [],
-                               blur_sigma_px=cam.blur_px, noise_sigma=cam.pixel_noise, rng=rng)
+            return render_tags(cam.K, cam.dist, cam.width_px, cam.height_px, [], **imaging)
         camera_T_world = self.world_T_camera().inverse()
         camera_T_structure = camera_T_world.compose(self.world_T_structure())
+        return render_tags(cam.K, cam.dist, cam.width_px, cam.height_px, self._tags_seen_from(camera_T_structure),
+                           overlay=self._truss_overlay(camera_T_structure, camera_T_world), **imaging)
+
+    def _truss_overlay(self, camera_T_structure: Pose3, camera_T_world: Pose3):
+        """`render_tags`'s overlay that draws the truss built so far as the camera sees it from
+        there (None: nothing built), through the true lens and its depth of field, lit by the lamp."""
+        from sim_devices.render_truss import draw_truss
+
+        cam = self.camera
+        assert cam is not None and self.borg is not None
         truss = in_camera(self.borg.truss(), camera_T_structure)
+        if truss.n_struts == 0 and truss.n_nodes == 0:
+            return None
         light = camera_T_world.rotation().matrix() @ LIGHT_WORLD
+        defocus = cam.defocus()
 
         def overlay(grey: np.ndarray, depth: np.ndarray) -> None:
-            draw_truss(grey, depth, cam.K, cam.dist, truss, blur_sigma_px=cam.blur_px, light_camera=light)
+            draw_truss(grey, depth, cam.K, cam.dist, truss, blur_sigma_px=cam.blur_px, defocus=defocus,
+                       light_camera=light)
 
-        return render_tags(cam.K, cam.dist, cam.width_px, cam.height_px, self._tags_seen_from(camera_T_structure),
-                           blur_sigma_px=cam.blur_px, noise_sigma=cam.pixel_noise, rng=rng, overlay=overlay)
+        return overlay
 

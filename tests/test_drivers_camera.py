@@ -58,9 +58,10 @@ def test_sim_frames_show_real_tags_where_the_true_pose_puts_them(bench):
     seen = {int(i) for i in ids.ravel()}
     assert {0, 1, 2, 9, 15, 17, 21, 35} <= seen              # face 1 from the home pose
     K, dist = bench.world.camera.K, bench.world.camera.dist     # the true lens, not the calibration file's
-    truth = {tid: T for tid, _, T in bench.world.tags_in_view()}
+    truth = {tid: (size, T) for tid, size, T in bench.world.tags_in_view()}   # the size as printed
     for c, tid in zip(corners, ids.ravel()):
-        want = tag_corners_px(K, truth[int(tid)], 0.10, dist)
+        size, T = truth[int(tid)]
+        want = tag_corners_px(K, T, size, dist)
         assert np.max(np.linalg.norm(c.reshape(4, 2) - want, axis=1)) < 0.5   # px
 
 

@@ -282,13 +282,16 @@ def test_sim_ipjr_with_plain_http_gets_like_curl(bench):
 
 
 def test_sim_camera_snapshot_and_intrinsics(bench):
-    base = bench.urls["camera"].removesuffix("/frame.png")
+    base = bench.urls["camera"].removesuffix("/frame.jpg")
     with urllib.request.urlopen(base + "/intrinsics.json", timeout=2) as r:
         intr = json.loads(r.read())
     assert intr["format"] == "lab-camera-calibration" and intr["width_px"] == 1280
     with urllib.request.urlopen(bench.urls["camera"], timeout=5) as r:
-        assert r.headers["Content-Type"] == "image/png" and int(r.headers["X-Frame-Seq"]) >= 1
-        img = cv2.imdecode(np.frombuffer(r.read(), np.uint8), cv2.IMREAD_COLOR)
+        # the sim rig's camera sends JPEG, as an IP camera does, and says so
+        assert r.headers["Content-Type"] == "image/jpeg" and int(r.headers["X-Frame-Seq"]) >= 1
+        body = r.read()
+        assert body[:2] == b"\xff\xd8"                       # a JPEG's start-of-image marker
+        img = cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR)
     assert img.shape == (720, 1280, 3)
 
 

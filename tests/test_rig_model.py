@@ -161,3 +161,66 @@ def test_corner_factor_with_fixed_intrinsics_matches_numerical_derivatives():
     assert f.unwhitenedError(v) == pytest.approx(np.full(8, 0.3), abs=1e-9)
     for key, J in zip(f.keys(), _analytic(f, v)):
         assert J * 0.1 == pytest.approx(_numerical(f, v, key, 6), rel=1e-3, abs=1e-2)
+
+
+def test_corner_factor_with_a_print_scale_matches_numerical_derivatives():
+    S = gtsam.symbol("s", 0)
+    v = gtsam.Values()
+    cam = Pose3(Rot3.RzRyRx(-np.pi / 2 - 0.05, 0.1, -np.pi / 2 + 0.15), np.array([-2.2, -0.1, 0.8]))
+    tag = Pose3(Rot3.RzRyRx(np.pi / 2 + 0.1, -0.05, -np.pi / 2 + 0.4), np.array([0.1, 0.3, 0.5]))
+    v.insert(C, cam)
+    v.insert(T, tag)
+    v.insert(S, np.array([0.002]))
+    local = tag_object_points(0.1)
+    pinhole = gtsam.PinholeCameraCal3_S2(cam, cal3_s2(K))
+    # a tag printed 0.2 % large reprojects exactly through the scale variable
+    corners = np.array([pinhole.project(tag.transformFrom(1.002 * p)) for p in local])
+    f = corner_factor(C, T, corners, local, 0.1, robust_k=None, fixed=cal3_s2(K), scale_key=S)
+    assert list(f.keys()) == [C, T, S]
+    assert np.abs(f.unwhitenedError(v)).max() < 1e-9
+    f = corner_factor(C, T, corners + 0.4, local, 0.1, robust_k=None, fixed=cal3_s2(K), scale_key=S)
+    for key, J in zip(f.keys(), _analytic_sized(f, v, {S: 1})):
+        d = 1 if key == S else 6
+        assert J * 0.1 == pytest.approx(_numerical(f, v, key, d, eps=1e-7 if d == 1 else 1e-6), rel=1e-3, abs=1e-2)
+
+
+def _analytic_sized(factor, values: gtsam.Values, sizes: dict[int, int]) -> list[np.ndarray]:
+    A, _ = factor.linearize(values).jacobian()
+    out, col = [], 0
+    for key in factor.keys():
+        d = sizes.get(key, 5 if key == INTRINSICS else 6)
+        out.append(A[:, col:col + d])
+        col += d
+    return out
+
+
+def test_corner_factor_corrects_the_lenss_radial_distortion_error():
+    """Corners undistorted through a camera file whose k1, k2 are off by (dk1, dk2) reproject
+    through the factor's correction to first order, and its Jacobian is the basis."""
+    import cv2
+
+    from estimation.rig_model import DISTORTION, distortion_prior_sigmas, radial_basis, undistort_px
+
+    v = gtsam.Values()
+    cam = Pose3()
+    tag = Pose3(Rot3.Rx(np.pi), np.array([1.3, 0.7, 2.0]))      # facing the camera, near the frame's corner
+    v.insert(C, cam)
+    v.insert(T, tag)
+    local = tag_object_points(0.1)
+    file_dist = np.array([-0.05, 0.01, 0.0, 0.0, 0.0])
+    dk = distortion_prior_sigmas(0.3, K)            # a lens 0.3 px off at the corners in each term
+    true_dist = file_dist + np.r_[dk, 0.0, 0.0, 0.0]
+    pts = np.array([cam.transformTo(tag.transformFrom(p)) for p in local])
+    raw, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, true_dist)
+    meas = undistort_px(raw.reshape(4, 2), K, file_dist)
+    v.insert(DISTORTION, np.zeros(2))
+    f0 = corner_factor(C, T, meas, local, 0.1, robust_k=None, fixed=cal3_s2(K),
+                       distortion=(DISTORTION, radial_basis(meas, K)))
+    assert list(f0.keys()) == [C, T, DISTORTION]
+    before = np.abs(f0.unwhitenedError(v)).max()
+    v.update(DISTORTION, np.r_[dk])
+    after = np.abs(f0.unwhitenedError(v)).max()
+    assert before > 0.05 and after < 0.1 * before
+    for key, J in zip(f0.keys(), _analytic_sized(f0, v, {DISTORTION: 2})):
+        d = 2 if key == DISTORTION else 6
+        assert J * 0.1 == pytest.approx(_numerical(f0, v, key, d, eps=1e-8 if d == 2 else 1e-6), rel=1e-3, abs=1e-2)

@@ -231,7 +231,7 @@ def test_camera_recovers_from_one_500_and_one_garbled_frame(bench):
 def test_camera_that_stops_answering_is_a_clear_timeout(bench):
     cam = fast_camera(bench)
     bench.inject("camera", "timeout", count=0)
-    with Deadline(3), pytest.raises(DeviceTimeout, match=r"no reply to GET /frame.png within 0.5 s"):
+    with Deadline(3), pytest.raises(DeviceTimeout, match=r"no reply to GET /frame.jpg within 0.5 s"):
         cam.grab()
 
 

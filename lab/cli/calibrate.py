@@ -29,7 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     c = csub.add_parser(
         "camera", help="camera intrinsics from views of a ChArUco board: live, from image files, or simulated",
-        description="Camera intrinsic calibration with a ChArUco board. Frames come from the rig's camera "
+        description="Camera intrinsic calibration with a ChArUco board (or a plain chessboard: --board "
+                    "chessboard:COLSxROWS:SQUARE_MM). Frames come from the rig's camera "
                     "(default; the operator is told where to hold the board), from image files (--frames DIR), or "
                     "from the simulated camera's true model (--sim N, compared with the truth). Writes the "
                     "intrinsics file the camera driver reads (docs/hardware.md).")
@@ -39,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--sim", type=int, metavar="N",
                      help="render N views of the board with the rig's simulated true camera ([sim.camera])")
     c.add_argument("--board", metavar="SPEC",
-                   help=f"the printed board, COLSxROWS:SQUARE_MM:MARKER_MM[:DICT][:legacy] (default {_HELP_BOARD})")
+                   help=f"the printed board, COLSxROWS:SQUARE_MM:MARKER_MM[:DICT][:legacy] (default {_HELP_BOARD}), "
+                        f"or a plain chessboard, chessboard:COLSxROWS:SQUARE_MM (inner corners, e.g. chessboard:9x6:25)")
     c.add_argument("--out", metavar="FILE", default=DEFAULT_OUT,
                    help=f"intrinsics file to write (default {DEFAULT_OUT}); point the rig's [camera] calibration at it")
     c.add_argument("--force", action="store_true", help="replace --out if it exists")
@@ -115,6 +117,9 @@ def _camera(args: argparse.Namespace) -> int:
         raise UserError(f"--out {out} already exists; choose another file or add --force to replace it")
     if args.sim is not None and not 1 <= args.sim <= 500:
         raise UserError(f"--sim {args.sim}: the number of simulated views must be 1..500")
+    if args.sim is not None and isinstance(board, cal.ChessboardSpec):
+        raise UserError(f"--board {board.text()}: --sim renders ChArUco boards only; give a ChArUco --board, or "
+                        f"--frames DIR for chessboard photographs")
     if args.save_frames and args.sim is None:
         raise UserError("--save-frames writes simulated frames; use it with --sim N")
     if args.interval_s < 0:
@@ -369,6 +374,9 @@ def _board(args: argparse.Namespace) -> int:
     from procedures.calibrate import DEFAULT_BOARD, parse_board
 
     board = parse_board(args.board or DEFAULT_BOARD)
+    if not hasattr(board, "make"):
+        raise UserError(f"--board {board.text()}: lab calibrate board prints ChArUco boards only (a plain "
+                        f"chessboard is for photographs already taken; print a ChArUco board for new ones)")
     out = Path(args.out)
     if out.suffix.lower() not in (".png", ".pdf"):
         raise UserError(f"--out {out}: write a .png or a .pdf")

@@ -114,7 +114,7 @@ def _sim(args: argparse.Namespace) -> int:
             print(f"  curl -s {bench.urls[http_dev]}/volts")
         cam = next((n for n, k, _ in rig.devices() if k == "camera"), None)
         if cam:
-            print(f"  curl -s -o frame.png {bench.urls[cam]}")
+            print(f"  curl -s -o {bench.urls[cam].rsplit('/', 1)[-1] or 'frame'} {bench.urls[cam]}")
         print("Ctrl-C stops.", flush=True)
         try:
             stop.wait(args.duration)

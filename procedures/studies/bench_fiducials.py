@@ -18,7 +18,9 @@ barrel distortion, 2 grey levels of noise, 0.6 px blur) with the BORG tag (10 cm
   give), counted as wrong only when the two solutions differ by more than 1 deg and the other one
   was the closer to the truth;
 - covariance honesty: the normalised error e' S^-1 e of each pose against the detector's own
-  covariance (6 on average if the covariance is right; larger means over-confident).
+  covariance (6 on average if the covariance is right; larger means over-confident);
+- image quality: edge spread across the tags' borders and noise in flat areas, the photographs
+  against the default simulated frames (`image_quality`, `bench_fiducials_photos.quality_study`).
 
 Writes fiducials.json, fiducials.md and PNG plots to --out (default bench_out/fiducials) and prints
 the Markdown (or the JSON with --json).  Top-level imports stay light: the CLI imports this module
@@ -34,7 +36,7 @@ import os
 import time
 
 from procedures.studies.bench_common import save_figure
-from procedures.studies.fiducial_scenes import _camera, tag_pose_on_ray, twenty_tag_frames
+from procedures.studies.fiducial_scenes import _camera, random_tag_pose, tag_pose_on_ray, twenty_tag_frames
 
 DISTANCES_M = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 MAX_VIEW_ANGLE_DEG = 60.0
@@ -53,24 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="tag poses per distance (default 200, --quick 40)")
 
 
-# ---- the camera and the scene -------------------------------------------------------------------
-def random_tag_pose(rng, K, width: int, height: int, distance_m: float, size_m: float,
-                    max_angle_rad: float = math.radians(MAX_VIEW_ANGLE_DEG)):
-    """camera_T_tag for a tag at `distance_m` from the camera, somewhere in the image (kept a tag's
-    width from the border), seen `angle` off its normal with a random turn about the normal."""
-    import numpy as np
-
-    margin = 1.2 * K[0, 0] * size_m / distance_m
-    u = rng.uniform(margin, width - 1 - margin)
-    v = rng.uniform(margin, height - 1 - margin)
-    ray = np.linalg.solve(K, [u, v, 1.0])
-    ray /= np.linalg.norm(ray)
-    angle = math.acos(rng.uniform(math.cos(max_angle_rad), 1.0))  # uniform over the spherical cap
-    phi = rng.uniform(0, 2 * math.pi)
-    psi = rng.uniform(0, 2 * math.pi)
-    return tag_pose_on_ray(ray, distance_m, angle, phi, psi), angle
-
-
+# ---- the camera and the scene (random_tag_pose, tag_pose_on_ray: fiducial_scenes) ----------------
 def _ippe_solutions(K, dist, corners, size_m):
     import cv2
     import numpy as np
@@ -212,6 +197,8 @@ def _markdown(res: dict, command: str) -> str:
     lines.append("")
     lines += corners.markdown(res["corners"], res["tilt"])
     lines.append("")
+    lines += photos.quality_markdown(res["image_quality"])
+    lines.append("")
     lines.append(f"Single-view pose error, {acc['tag_size_m'] * 100:.0f} cm tag anywhere in view, 0-{acc['max_view_angle_deg']:.0f} deg "
                  "off its normal; wrong IPPE solution = the other solution was the closer to the truth "
                  f"(only pairs differing by > {DIFFERENT_SOLUTIONS_DEG:.0f} deg count); prediction = truth disturbed by "
@@ -272,7 +259,8 @@ def run(args: argparse.Namespace) -> int:
            "tilt": corners.tilt_study(20 if quick else 100, seed),
            "photos": photos.photo_study(quick),
            "rendered": photos.render_study(2 if quick else 8, seed),
-           "accuracy": accuracy_study(trials, seed)}
+           "accuracy": accuracy_study(trials, seed),
+           "image_quality": photos.quality_study(quick)}
     res["elapsed_s"] = time.perf_counter() - t0
     md = _markdown(res, command)
     plots = _plots(res, out_dir)

@@ -424,3 +424,101 @@ def markdown(photos: dict, rendered: dict, timing: dict) -> list[str]:
         lines.append(f"| {k} | {v['median_ms']:.1f} ms | {v['min_ms']:.1f} ms | {v['cpu_median_ms']:.1f} ms "
                      f"| {v['found_mean']:.1f} |")
     return lines
+
+
+# ---- image quality: the photographs against the simulator's default frame ----------------------
+SIM_TURNTABLE_DEG = (0.0, 20.0)      # the default rig's views of the 3x3x3 BORG, turntable at these angles
+
+
+def sim_default_frames(n: int = len(SIM_TURNTABLE_DEG)) -> list:
+    """Frames of the default simulated rig (lab/rigs/sim.toml, its [sim.camera] and scenario
+    defaults) as its camera renders them (`SimWorld.render`): the whole BORG placed, the platform at
+    home, the turntable at SIM_TURNTABLE_DEG; [(label, BGR image)]."""
+    from lab.config import load_rig
+    from sim_devices.world import SimWorld
+
+    world = SimWorld(load_rig())
+    world.borg.place_all()
+    out = []
+    for deg in SIM_TURNTABLE_DEG[:n]:
+        world.turntable.set_position(math.radians(deg))
+        out.append((f"sim default, turntable {deg:g} deg", world.render()))
+    return out
+
+
+def quality_study(quick: bool = False, photo_dir: str = PHOTO_DIR) -> dict:
+    """Edge spread and flat-area noise (procedures/studies/image_quality.py) of every photograph
+    in tests/data/photos and of the default simulated frames, tags >= 20 px a side."""
+    import cv2
+
+    from procedures.studies import image_quality as iq
+
+    det = iq._detector()
+    rows = []
+    ref = load_reference(photo_dir)
+    for photo in (ref["photos"] if ref else []):
+        g = cv2.imread(os.path.join(photo_dir, photo["file"]), cv2.IMREAD_GRAYSCALE)
+        rows.append({"image": photo["file"], "source": "photograph", **iq.measure_image(g, detector=det)})
+    frames = sim_default_frames(1 if quick else len(SIM_TURNTABLE_DEG))
+    sim_tags = []
+    for label, img in frames:
+        r = iq.measure_image(img, detector=det)
+        rows.append({"image": label, "source": "simulator", **r})
+        sim_tags += r["tags"]
+    from lab.config import load_rig
+
+    c = load_rig().sim.camera
+    photo_tags = [t for r in rows if r["source"] == "photograph" for t in r["tags"]]
+    return {"min_side_px": iq.DEFAULT_MIN_SIDE_PX, "rows": rows,
+            "photographs": _pooled(photo_tags), "simulator": _pooled(sim_tags),
+            "sim_camera": {"blur_px": float(c["blur_px"]), "pixel_noise": float(c["pixel_noise"])}}
+
+
+def _pooled(tag_rows: list[dict]) -> dict:
+    """The summary (`image_quality.summarise`'s keys) over tags already measured (their JSON)."""
+    import numpy as np
+
+    edge = [t for t in tag_rows if t["sigma_px"] is not None and not t["too_small"]]
+
+    def med(key: str, rows: list[dict]) -> float | None:
+        x = [t[key] for t in rows if t[key] is not None]
+        return float(np.median(x)) if x else None
+
+    sig = [t["sigma_px"] for t in edge]
+    return {"tags_measured": len(tag_rows), "tags_with_edges": len(edge),
+            "sigma_px": med("sigma_px", edge), "sigma_px_range": [min(sig), max(sig)] if sig else None,
+            "rise_px": med("rise_px", edge), "blur_px": med("blur_px", edge), "halo": med("halo", edge),
+            "contrast": med("contrast", tag_rows), "noise_dark": med("noise_dark", tag_rows),
+            "noise_bright": med("noise_bright", tag_rows), "noise_dark_rel": med("noise_dark_rel", tag_rows),
+            "noise_bright_rel": med("noise_bright_rel", tag_rows)}
+
+
+def quality_markdown(q: dict) -> list[str]:
+    def f(x, fmt="{:.2f}"):
+        return "-" if x is None else fmt.format(x)
+
+    def pct(x):
+        return "-" if x is None else f"{100 * x:.1f} %"
+
+    def cells(r: dict) -> str:
+        rng = r["sigma_px_range"]
+        found = f" of {r['tags_found']} found" if "tags_found" in r else ""
+        return (f"{r['tags_with_edges']}/{r['tags_measured']}{found} | {f(r['sigma_px'])}"
+                f"{' (' + f(rng[0]) + '-' + f(rng[1]) + ')' if rng else ''} | {f(r['rise_px'])} | {f(r['blur_px'])} | "
+                f"{pct(r['halo'])} | {f(r['contrast'], '{:.0f}')} | {f(r['noise_dark'], '{:.1f}')} / "
+                f"{f(r['noise_bright'], '{:.1f}')} | {pct(r['noise_dark_rel'])} / {pct(r['noise_bright_rel'])} |")
+
+    c = q["sim_camera"]
+    lines = [f"Image quality, photographs (tests/data/photos) against the default simulated frame ([sim.camera] "
+             f"blur_px {c['blur_px']:g}, pixel_noise {c['pixel_noise']:g}): tags >= {q['min_side_px']:g} px a side; "
+             "edge sigma = the Gaussian edge spread across the black square's border, pixel aperture included "
+             "(median over tags; range), rise = its 10-90 % distance, blur = the simulator blur_px that draws "
+             "the same edge, halo = sharpening's overshoot; noise = std in flat black / white areas, grey levels "
+             "and % of the contrast.", "",
+             "| image | tags: with edges / >= min side | edge sigma px | 10-90 % rise px | blur px | halo | contrast | "
+             "noise black / white | noise / contrast |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in q["rows"]:
+        lines.append(f"| {r['image']} | " + cells(r))
+    lines.append("| **all photographs** | " + cells(q["photographs"]))
+    lines.append("| **simulator** | " + cells(q["simulator"]))
+    return lines

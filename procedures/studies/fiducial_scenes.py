@@ -3,6 +3,9 @@
 
 from __future__ import annotations
 
+import math
+import time
+
 
 def _camera():
     import numpy as np
@@ -35,6 +38,23 @@ def tag_pose_on_ray(ray, distance_m: float, angle_rad: float, phi: float, psi: f
     x = math.cos(psi) * x0 + math.sin(psi) * y0
     y = np.cross(z, x)
     return Pose3(Rot3(np.column_stack([x, y, z])), distance_m * np.asarray(ray, dtype=float))
+
+
+def random_tag_pose(rng, K, width: int, height: int, distance_m: float, size_m: float,
+                    max_angle_rad: float = math.radians(60.0)):
+    """camera_T_tag for a tag at `distance_m` from the camera, somewhere in the image (kept a tag's
+    width from the border), seen `angle` off its normal with a random turn about the normal."""
+    import numpy as np
+
+    margin = 1.2 * K[0, 0] * size_m / distance_m
+    u = rng.uniform(margin, width - 1 - margin)
+    v = rng.uniform(margin, height - 1 - margin)
+    ray = np.linalg.solve(K, [u, v, 1.0])
+    ray /= np.linalg.norm(ray)
+    angle = math.acos(rng.uniform(math.cos(max_angle_rad), 1.0))  # uniform over the spherical cap
+    phi = rng.uniform(0, 2 * math.pi)
+    psi = rng.uniform(0, 2 * math.pi)
+    return tag_pose_on_ray(ray, distance_m, angle, phi, psi), angle
 
 
 def twenty_tag_frames(frames: int, seed: int) -> list:
