@@ -5,9 +5,13 @@ measurement covariance.
   quads and their ids (accepting tags that touch the image border); each quad is then refined by
   fitting its four edges (`estimation.tag_quads.fit_quads`: unbiased to a few thousandths of a pixel
   on area-sampled images, lens distortion taken out) and checked: every edge fitted, straight (rms
-  of its row crossings), corners near the detector's quad, and the tag's 64 cells read back from
-  the refined quad within `max_bit_errors` of the id's pattern.  A tag failing a check is dropped:
-  its corners are not to be trusted at the accuracy the pose and the graph assume.
+  of its row crossings), corners near the detector's quad, the tag's 64 cells read back from
+  the refined quad within `max_bit_errors` of the id's pattern, and nothing in front of it: no
+  edge more than half occluded (`QuadFit.occluded`) and, for tags with a clear quiet zone (the
+  lab's: `DetectorConfig.quiet_zone`), its whole black border and quiet zone reading black and
+  white (`tag_quads.ring_deviation`).  A tag failing a check is dropped: its corners are not to
+  be trusted at the accuracy the pose and the graph assume (a strut across a tag's quiet zone
+  moved its corners by up to 4 px before these checks: docs/fiducials.md, "Occlusion").
 - Corners: OpenCV's pixel convention (pixel centres at integer coordinates) and aruco's order:
   the marker's top-left, top-right, bottom-right, bottom-left as OpenCV 4 draws it
   (`cv2.aruco.generateImageMarker`, which the simulator renders), matching `tag_object_points`.
@@ -37,7 +41,7 @@ from typing import Callable, Mapping, Sequence
 import cv2
 import numpy as np
 
-from estimation.tag_quads import code_bits, fit_quads, identify, read_bits
+from estimation.tag_quads import code_bits, fit_quads, identify, read_bits, ring_deviation
 from lab.geometry import Pose3, Rot3
 
 __all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges",
@@ -71,6 +75,17 @@ class DetectorConfig:
     max_edge_rms_px: float = 0.3      # row crossings about each fitted edge: a straight, clean edge
     max_corner_shift_px: float = 3.5  # from aruco's quad (or 20 % of the side, if larger): its
                                       # unrefined corners are up to ~3 px off on small photographed tags
+    max_occluded_share: float = 0.5   # of an edge's rows found occluded (something in front of the
+                                      # tag crossing it: tag_quads, docs/fiducials.md); the fit uses the
+                                      # rest, and a tag with an edge hidden more than this is dropped
+    # The lab's tags have a clear one-cell white quiet zone.  Relying on it: the edge fit takes an
+    # edge whose quiet zone reads short of the tag's white as occluded, and the whole quiet zone's
+    # ring must read white and the black border's ring black, within `max_ring_deviation` of the
+    # tag's contrast, or something is in front of the tag (a strut) and it is dropped
+    # (`tag_quads.ring_deviation`).  False: tags printed with less margin, photographs of other
+    # people's tags (docs/fiducials.md, "Occlusion").
+    quiet_zone: bool = True
+    max_ring_deviation: float = 0.35
 
 
 @lru_cache(maxsize=64)
@@ -168,7 +183,7 @@ class TagDetector:
         everything = np.concatenate([quads, rej])
         if len(everything) == 0:
             return [], np.zeros((0, 4, 2))
-        fit = fit_quads(grey, everything, (self.K, self.dist))
+        fit = fit_quads(grey, everything, (self.K, self.dist), quiet_zone=cfg.quiet_zone)
         ok = self._fit_ok(fit, everything)
         keep = ok[:n] & (self._bit_errors(grey, fit.corners[:n], quads, ids) <= cfg.max_bit_errors)
         found_ids = [t for t, good in zip(ids, keep) if good]
@@ -178,13 +193,21 @@ class TagDetector:
             good = errors <= cfg.max_bit_errors
             found_ids += [int(t) for t in tid[good]]
             found.append(rolled[good])
-        return found_ids, np.concatenate(found).reshape(-1, 4, 2)
+        corners = np.concatenate(found).reshape(-1, 4, 2)
+        if cfg.quiet_zone and len(corners):
+            clear = ring_deviation(grey, corners) <= cfg.max_ring_deviation
+            found_ids = [t for t, c in zip(found_ids, clear) if c]
+            corners = corners[clear]
+        return found_ids, corners
 
     def refine(self, grey: np.ndarray, ids: Sequence[int], quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Edge-fitted corners of quads of known ids and whether each passed every check."""
-        fit = fit_quads(grey, quads, (self.K, self.dist))
+        fit = fit_quads(grey, quads, (self.K, self.dist), quiet_zone=self.config.quiet_zone)
         errors = self._bit_errors(grey, fit.corners, quads, ids)
-        return fit.corners, self._fit_ok(fit, quads) & (errors <= self.config.max_bit_errors)
+        ok = self._fit_ok(fit, quads) & (errors <= self.config.max_bit_errors)
+        if self.config.quiet_zone and len(quads):
+            ok &= ring_deviation(grey, fit.corners) <= self.config.max_ring_deviation
+        return fit.corners, ok
 
     def _bit_errors(self, grey: np.ndarray, refined: np.ndarray, quads: np.ndarray, ids: Sequence[int]) -> np.ndarray:
         """Cells (of 64) that disagree with each id's pattern, read from the refined quad or from
@@ -207,6 +230,7 @@ class TagDetector:
         shift = np.max(np.linalg.norm(fit.corners - quads, axis=2), axis=1)
         with np.errstate(invalid="ignore"):
             return (fit.edges_fitted.all(axis=1)
+                    & (fit.occluded <= cfg.max_occluded_share).all(axis=1)
                     & (np.nanmax(np.where(fit.edges_fitted, fit.rms_px, np.inf), axis=1) <= cfg.max_edge_rms_px)
                     & (shift <= np.maximum(cfg.max_corner_shift_px, 0.2 * side)))
 

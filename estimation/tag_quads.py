@@ -25,6 +25,17 @@ steepest dark-to-bright step within 1.5 cells), which pulls in a detector's corn
 passes follow until no corner moves more than CONVERGED_PX.  An edge with fewer than `MIN_ROWS`
 usable rows keeps the line it came with (and its quad is reported as not fully fitted).
 
+Occlusion (a strut of the truss in front of a tag): from the second fine pass, an edge's dark and
+bright levels are the medians of the image at its windows' two ends, and rows whose ends stray
+from them (something crossing the edge), or, on tags with a clear quiet zone, whose quiet zone
+darkens just past the window or whose edge reads short of the tag's contrast (something along
+the edge), are left out with guard rows (`QuadFit.occluded`); `ring_deviation` reads the whole
+black border and quiet zone against the tag's own black and white.  The tolerances follow the
+frame: a row's at least OCCLUSION_NOISE_SIGMAS of its edge's own spread (a noisy camera), the
+ring's samples clear of their cells' edges by RING_MIN_EDGE_SIGMAS of the tag's edge blur
+(`edge_blur_px`: a blurred lens).  Constants OCCLUSION_* and RING_*; docs/fiducials.md,
+"Occlusion".
+
 Bit reading (`read_bits`, `identify`): the 8x8 cells and the quiet-zone ring around them sampled at
 their centres through the quad's homography, sharpened, and thresholded halfway between planes
 fitted to the black border and to the white ring, as the AprilTag library does; a detection is
@@ -33,13 +44,15 @@ then checked against the dictionary with a Hamming distance of our choosing.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
 import cv2
 import numpy as np
+from scipy.special import ndtr
 
-__all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "identify", "MIN_ROWS"]
+__all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "identify", "ring_deviation", "edge_blur_px", "MIN_ROWS"]
 
 CELLS = 8                 # AprilTag 36h11: 6x6 data cells inside a one-cell black border
 MIN_ROWS = 3              # an edge needs this many usable rows (or columns) to be refitted
@@ -52,6 +65,32 @@ COARSE_BELOW_CELL_PX = 4.5  # tags with smaller cells start with a coarse pass
 SHARPEN = 0.25            # Laplacian sharpening of the cell samples before reading bits (AprilTag's default)
 CONVERGED_PX = 0.1        # a fine pass that moved no corner more than this ends a quad's refinement
 EDGE_LEVELS_MIN_CELL_PX = 4.0   # smaller cells: an edge's dark/bright levels are its tag's
+# Occlusion (docs/fiducials.md), looked for on edges whose cells are OCCLUSION_MIN_CELL_PX or more:
+# a row is left out as occluded when its window's end samples differ from its edge's medians by
+# more than OCCLUSION_TOLERANCE of the edge's contrast; where cells are OCCLUSION_ABSOLUTE_MIN_CELL_PX
+# or more (windows reaching 2 px or more, clear of the edge's own blur), also when its quiet zone
+# darkens by more than OCCLUSION_MAX_DROP of the tag's contrast OCCLUSION_FAR_PX past its window,
+# and every row of an edge whose contrast at the windows' ends is below OCCLUSION_MIN_CONTRAST of
+# the tag's.  OCCLUSION_GUARD_ROWS rows either side go with each.
+OCCLUSION_TOLERANCE = 0.15
+OCCLUSION_MIN_CELL_PX = 3.5
+OCCLUSION_ABSOLUTE_MIN_CELL_PX = 4.0
+OCCLUSION_MAX_DROP = 0.2
+OCCLUSION_FAR_PX = 1.0
+OCCLUSION_MIN_CONTRAST = 0.8
+OCCLUSION_GUARD_ROWS = 3
+# ... and, on a noisy frame (or a blurred one, whose windows' ends read less of the contrast), the
+# tolerance is at least this many of the edge's own row-to-row spread (1.4826 MAD of the samples
+# about their medians): noise alone then flags no row, and a strut (0.4 of the contrast and more
+# over the quiet zone) still is
+OCCLUSION_NOISE_SIGMAS = 4.5
+RING_MIN_EDGE_PX = 0.9         # ... those at least this far from both edges of their cell,
+RING_MIN_EDGE_SIGMAS = 1.15    # ... and this many of the tag's edge blur (`edge_blur_px`): at the
+                               # sim's 0.6 px lens (edges 0.65-0.9 px) that is the 0.9 px above, and
+                               # a clean sample loses at most ~0.13 of the contrast to a cell edge's
+                               # blur whatever the lens
+EDGE_BLUR_NEAR_PX = 0.5        # `edge_blur_px`: the contrast across an edge at +-this ...
+RING_DEPTHS_CELLS = (0.3, 0.5)  # the perimeter check's samples, from the black square's edge (`ring_deviation`)
 
 
 @dataclass(frozen=True)
@@ -60,6 +99,7 @@ class QuadFit:
     edges_fitted: np.ndarray   # (N, 4) bool: edge i (corner i -> i+1) was refitted
     rms_px: np.ndarray         # (N, 4) rms of the row crossings about each fitted line (nan if not fitted)
     corner_sigma_px: np.ndarray  # (N, 4) each corner's standard error from its two lines' fits (nan: unfitted)
+    occluded: np.ndarray = None  # (N, 4) share of each edge's rows left out as occluded (the last pass's)
 
 
 def _lines_from_corners(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -90,8 +130,9 @@ def _bilinear(g: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
             + (flat[i + W] * (1 - fx) + flat[i + W + 1] * fx) * fy)
 
 
-def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None, coarse: bool
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None, coarse: bool,
+              check: np.ndarray | None = None, quiet_zone: bool = True
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One pass over every edge of every quad: each edge as a line (point, unit direction) in ideal
     pinhole pixels (image pixels without `camera`), whether it was fitted, the rms of its crossings
     about it (px), and its fit's statistics for `_corner_sigma` (N, 4, 3).  `coarse`: find each row's crossing as the steepest dark-to-bright step
@@ -134,7 +175,7 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     count = np.maximum(r_hi - r_lo + 1, 0).astype(np.int64).ravel()
     edge_of = np.repeat(np.arange(E), count)
     if edge_of.size == 0:   # quads too small for a single row clear of their corners
-        return p_in, d_in, np.zeros((N, 4), bool), np.full((N, 4), np.nan), np.zeros((N, 4, 3))
+        return p_in, d_in, np.zeros((N, 4), bool), np.full((N, 4), np.nan), np.zeros((N, 4, 3)), np.zeros((N, 4))
     start = np.repeat(np.cumsum(count) - count, count)
     r = r_lo.ravel()[edge_of] + (np.arange(edge_of.size) - start)
     slope = ((qs - ps) / np.where(qr != pr, qr - pr, np.nan)).ravel()
@@ -161,18 +202,49 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     bright_side = (s_pix - s_line[:, None]) * sgn[:, None] > 0
     row_ok = np.all(inside | (wgt == 0) | bright_side, axis=1) & np.isfinite(s_line)
     vals = flat[np.clip(y, 0, H - 1) * W + np.clip(x, 0, W - 1)].astype(np.float64)
-    # dark and bright levels of each edge: half a cell inside (the black border) and outside (the
-    # quiet zone) along the normal, averaged over the edge's rows
+    # dark and bright levels of each edge: the image at the window's two ends (`reach` from the
+    # line along the normal), the median over the edge's rows.  Sampled there rather than deeper
+    # into the border and the quiet zone, an edge's levels see nothing the windows do not: a strut
+    # or a background over the outer quiet zone cannot bias the crossings through the levels; and
+    # for a symmetric blur the two ends sit symmetrically on the edge's profile, so their mid-level
+    # is the edge's even where the profile has not flattened out yet.
     n_img = n_out.reshape(-1, 2)[edge_of]
     on_line = np.where(use_rows, np.column_stack([s_line, r]), np.column_stack([r, s_line]))
-    half_cell = (0.5 * cell).ravel()[edge_of][:, None]
-    p_dark = on_line - half_cell * n_img
-    p_bright = on_line + half_cell * n_img
+    reach_e = reach.ravel()[edge_of][:, None]
+    p_dark = on_line - reach_e * n_img
+    p_bright = on_line + reach_e * n_img
     in_img = lambda p: (p[:, 0] >= 0) & (p[:, 0] <= W - 1) & (p[:, 1] >= 0) & (p[:, 1] <= H - 1)  # noqa: E731
-    lvl_ok = (in_img(p_dark) & in_img(p_bright) & np.isfinite(s_line)).astype(np.float64)
-    n_lvl = np.bincount(edge_of, weights=lvl_ok, minlength=E)
-    sum_dark = np.bincount(edge_of, lvl_ok * _bilinear(grey, p_dark[:, 0], p_dark[:, 1]), E)
-    sum_bright = np.bincount(edge_of, lvl_ok * _bilinear(grey, p_bright[:, 0], p_bright[:, 1]), E)
+    lvl_ok = in_img(p_dark) & in_img(p_bright) & np.isfinite(s_line)
+    v_dark = _bilinear(grey, p_dark[:, 0], p_dark[:, 1])
+    v_bright = _bilinear(grey, p_bright[:, 0], p_bright[:, 1])
+    # rows where something lies over the window (a strut in front of the tag crossing the edge):
+    # left out of the levels and of the fit, with their neighbours
+    dark_m, bright_m, bad = _odd_rows(edge_of, v_dark, v_bright, lvl_ok, E)
+    chk = np.zeros(E, bool) if check is None else np.repeat(np.asarray(check, bool), 4)
+    chk &= cell.ravel() >= OCCLUSION_MIN_CELL_PX
+    bad &= chk[edge_of]
+    chk &= cell.ravel() >= OCCLUSION_ABSOLUTE_MIN_CELL_PX
+    if quiet_zone and chk.any():
+        # Something over the quiet zone all along an edge (a strut parallel to it) looks to the test
+        # above like a narrow quiet zone, and the windows then reach into it.  Against the tag's own
+        # black and white (its cells): an edge whose contrast at the window's ends falls short, or
+        # a row whose quiet zone darkens again just past its window, is occluded.  Only where cells
+        # are OCCLUSION_ABSOLUTE_MIN_CELL_PX or more: with smaller cells the window's ends lie on
+        # the edge's own blur (a clean edge seen obliquely reads 0.8 of the tag's contrast there),
+        # and photographed tags' own margins fail these tests (docs/fiducials.md).
+        t_dark, t_bright = np.full(N, np.nan), np.full(N, np.nan)
+        quads = np.flatnonzero(chk.reshape(N, 4).any(axis=1))
+        t_dark[quads], t_bright[quads] = _tag_levels(grey, q[quads])
+        c_tag = np.repeat(t_bright - t_dark, 4)
+        far = np.minimum(reach + OCCLUSION_FAR_PX, 0.75 * cell).ravel()[edge_of][:, None]
+        p_far = on_line + far * n_img
+        v_far = _bilinear(grey, p_far[:, 0], p_far[:, 1])
+        with np.errstate(invalid="ignore"):
+            bad |= chk[edge_of] & lvl_ok & in_img(p_far) & (v_bright - v_far > OCCLUSION_MAX_DROP * c_tag[edge_of])
+            short = chk & (bright_m - dark_m < OCCLUSION_MIN_CONTRAST * c_tag)
+        bad |= short[edge_of] & lvl_ok
+    occluded = _dilate(bad, edge_of, OCCLUSION_GUARD_ROWS)
+    n_lvl = np.bincount(edge_of, weights=(lvl_ok & ~occluded).astype(np.float64), minlength=E)
     # small cells put those samples inside the blur of the edge itself, and an edge along the image
     # border has none: such edges take their tag's levels, the two clusters of its cells' centres
     own = (n_lvl >= MIN_ROWS) & (cell.ravel() >= EDGE_LEVELS_MIN_CELL_PX)
@@ -180,9 +252,8 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     need = ~own.reshape(N, 4).all(axis=1)
     if need.any():
         tag_dark[need], tag_bright[need] = _tag_levels(grey, q[need])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        dark = np.where(own, sum_dark / n_lvl, np.repeat(tag_dark, 4))
-        bright = np.where(own, sum_bright / n_lvl, np.repeat(tag_bright, 4))
+    dark = np.where(own, dark_m, np.repeat(tag_dark, 4))
+    bright = np.where(own, bright_m, np.repeat(tag_bright, 4))
     contrast = bright - dark
     with np.errstate(invalid="ignore", divide="ignore"):
         # an edge without contrast gives NaN, never inf (its rows are dropped below)
@@ -205,6 +276,7 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
         cross = np.where(sgn > 0, s_line + Ae - bright_len, s_line - Ae + bright_len)
     row_ok &= np.abs(cross - s_line) <= Ae                             # the crossing lies within its window
     row_ok &= (contrast >= MIN_CONTRAST)[edge_of]
+    row_ok &= ~occluded
 
     # the crossings as image points, then straight lines through them where straight lines are
     # straight: in the ideal pinhole image when the lens is known
@@ -240,7 +312,51 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
     n = np.bincount(edge_of, w, E)
     r_eff = np.maximum(rms * np.sqrt(n / np.maximum(n - 2, 1)), 0.02)
     stats = np.stack([r_eff, n, var_t], axis=1).reshape(N, 4, 3)
-    return p, d, fitted, np.where(fitted, rms.reshape(N, 4), np.nan), stats
+    n_rows = np.bincount(edge_of, lvl_ok, E)
+    occ_frac = np.bincount(edge_of, occluded & lvl_ok, E) / np.maximum(n_rows, 1)
+    return p, d, fitted, np.where(fitted, rms.reshape(N, 4), np.nan), stats, occ_frac.reshape(N, 4)
+
+
+def _odd_rows(edge_of: np.ndarray, v_dark: np.ndarray, v_bright: np.ndarray, ok: np.ndarray,
+              n_edges: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each edge's median dark and bright samples (over its rows with both in the image; NaN for
+    fewer than MIN_ROWS), and its rows whose samples differ from those medians by more than
+    OCCLUSION_TOLERANCE of the contrast, or OCCLUSION_NOISE_SIGMAS of the edge's own spread if
+    that is more: something in front of the tag (or a stain, a shadow's edge) crosses the edge
+    there."""
+    R = len(edge_of)
+    cnt = np.bincount(edge_of, ok, n_edges).astype(np.int64)
+    rows = np.bincount(edge_of, minlength=n_edges)
+    start = np.cumsum(rows) - rows
+
+    def median(v: np.ndarray) -> np.ndarray:
+        order = np.lexsort((v, ~ok, edge_of))          # per edge: its usable rows first, by value
+        m = v[order[np.clip(start + np.maximum(cnt - 1, 0) // 2, 0, max(R - 1, 0))]] if R else np.zeros(n_edges)
+        return np.where(cnt >= MIN_ROWS, m, np.nan)
+
+    dark_m, bright_m = median(v_dark), median(v_bright)
+    if R == 0:
+        return dark_m, bright_m, np.zeros(0, bool)
+    tol = OCCLUSION_TOLERANCE * (bright_m - dark_m)
+    bad = np.zeros(R, bool)
+    with np.errstate(invalid="ignore"):
+        for v, m in ((v_dark, dark_m), (v_bright, bright_m)):
+            dev = np.abs(v - m[edge_of])
+            spread = 1.4826 * median(np.where(ok, dev, 0.0))
+            t = np.fmax(tol, OCCLUSION_NOISE_SIGMAS * spread)[edge_of]
+            bad |= ok & (tol[edge_of] > 0) & (dev > t)
+    return dark_m, bright_m, bad
+
+
+def _dilate(bad: np.ndarray, edge_of: np.ndarray, k_max: int) -> np.ndarray:
+    """`bad` rows and the `k_max` rows either side of each on the same edge (an occluder's blurred
+    outline reaches past the rows it covers)."""
+    out = bad.copy()
+    for k in range(1, min(k_max, len(bad) - 1) + 1):
+        same = edge_of[k:] == edge_of[:-k]
+        out[:-k] |= bad[k:] & same
+        out[k:] |= bad[:-k] & same
+    return out
 
 
 def _corner_sigma(p: np.ndarray, d: np.ndarray, corners: np.ndarray, stats: np.ndarray) -> np.ndarray:
@@ -314,27 +430,32 @@ def _distort(pts: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None) -> n
 
 
 def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None = None,
-              passes: int = 3) -> QuadFit:
+              passes: int = 3, quiet_zone: bool = True) -> QuadFit:
     """Refine the quads (N, 4, 2; corners clockwise in the image as aruco returns them) of tags in a
     grey image (2-D, any numeric type) by fitting each edge: a coarse pass first for small tags
     (their windows are too short to pull in a corner a pixel or two off), then up to `passes` fine
     ones, until no corner moves more than CONVERGED_PX; see the module's docstring.  With
     `camera` = (K, dist) the edges are fitted as straight lines in the undistorted image (lens
-    distortion bends them by tenths of a pixel over a near tag)."""
+    distortion bends them by tenths of a pixel over a near tag).  Rows an occluder crosses are left
+    out (`QuadFit.occluded`); `quiet_zone`: the tags have a clear one-cell quiet zone, so an edge
+    whose quiet zone reads short of the tag's white is occluded too (not for tags printed with
+    less margin)."""
     q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
     g = np.ascontiguousarray(grey, dtype=np.float32)
     N = len(q)
     rms = np.full((N, 4), np.nan)
     sigma = np.full((N, 4), np.nan)
+    occluded = np.zeros((N, 4))
     fitted_any = np.zeros((N, 4), bool)
     cur = q.copy()
     side = np.linalg.norm(np.roll(q, -1, axis=1) - q, axis=2).min(axis=1) if N else np.zeros(0)
     coarse_first = side / CELLS < COARSE_BELOW_CELL_PX
     active = np.ones(N, bool)
 
-    def step(idx: np.ndarray, coarse: bool) -> np.ndarray:
+    def step(idx: np.ndarray, coarse: bool, check: np.ndarray | None = None) -> np.ndarray:
         """One pass over the quads `idx`; how far each one's corners moved."""
-        p, d, fitted, rms_pass, stats = _fit_pass(g, cur[idx], camera, coarse)
+        p, d, fitted, rms_pass, stats, occ_pass = _fit_pass(g, cur[idx], camera, coarse, check, quiet_zone)
+        occluded[idx] = occ_pass
         rms[idx] = np.where(fitted, rms_pass, rms[idx])
         fitted_any[idx] |= fitted
         ideal = _intersect(p, d)
@@ -351,14 +472,20 @@ def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.
 
     if coarse_first.any():
         step(np.flatnonzero(coarse_first), True)
-    for _ in range(passes):
+    # rows crossed by an occluder are looked for from the second fine pass on, once the windows sit
+    # on the edges (before that a line pixels off makes every row look odd): a quad converged in its
+    # first pass gets a second one
+    checked = np.zeros(N, bool)
+    for _ in range(max(passes, 2)):
         idx = np.flatnonzero(active)
         if len(idx) == 0:
             break
-        moved = step(idx, False)
-        active[idx[moved < CONVERGED_PX]] = False     # converged: the fine pass contracts the error 10-1000x
+        check = checked[idx].copy()
+        moved = step(idx, False, check)
+        checked[idx] = True
+        active[idx[(moved < CONVERGED_PX) & check]] = False   # converged: the fine pass contracts the error 10-1000x
     fitted = fitted_any
-    return QuadFit(cur, fitted, rms, sigma)
+    return QuadFit(cur, fitted, rms, sigma, occluded)
 
 
 @lru_cache(maxsize=4)
@@ -508,3 +635,109 @@ def identify(grey: np.ndarray, quads: np.ndarray, codes: np.ndarray, allowed: np
         best_id = np.where(better, allowed[j], best_id)
         best_q[better] = qr[better]
     return best_id, best_q, best_err
+
+
+@lru_cache(maxsize=1)
+def _ring_points() -> tuple[np.ndarray, ...]:
+    """Unit-square points (u right, v down; the black square is 0..1) a quarter cell apart along
+    the black border and along the quiet zone, at RING_DEPTHS_CELLS from the black square's edge
+    (inwards for the border, outwards for the quiet zone, whose run goes on past the corners), and
+    for each: whether it is a quiet-zone point, the side it samples (0 top, 1 right, 2 bottom,
+    3 left: edge i runs from corner i to corner i + 1), its distance (cells) from the nearer edge of
+    its ring cell across the side, the side whose edge is nearest along it (at the corner it is
+    closer to) and its distance (cells) from that: the black square's edge for a border point, the
+    quiet zone's outer edge for a quiet-zone point past the corner (inf before it)."""
+    pts, quiet, side, margin, adj, along = [], [], [], [], [], []
+    for outward, sign in ((False, -1.0), (True, 1.0)):
+        for depth in RING_DEPTHS_CELLS:
+            off = sign * depth / CELLS                        # from the edge, in unit-square units
+            reach = (CELLS / 2 + (depth if outward else -depth)) / CELLS
+            s = np.arange(-reach, reach + 1e-9, 0.25 / CELLS) + 0.5
+            t = np.abs(s - 0.5) * CELLS                      # cells from the side's middle
+            for e in range(4):   # top (v = 0), right (u = 1), bottom (v = 1), left (u = 0)
+                line = np.full_like(s, (0.0, 1.0, 1.0, 0.0)[e] + (-off, off, off, -off)[e])
+                uv = np.column_stack([s, line]) if e in (0, 2) else np.column_stack([line, s])
+                pts.append(uv)
+                quiet.append(np.full(len(s), outward))
+                side.append(np.full(len(s), e))
+                margin.append(np.full(len(s), min(depth, 1.0 - depth)))
+                adj.append(np.where(s < 0.5, 3, 1) if e in (0, 2) else np.where(s < 0.5, 0, 2))
+                along.append(np.where(t > CELLS / 2, CELLS / 2 + 1.0 - t, np.inf) if outward else CELLS / 2 - t)
+    p = np.concatenate(pts)
+    return (np.column_stack([p, np.ones(len(p))]), np.concatenate(quiet), np.concatenate(side),
+            np.concatenate(margin), np.concatenate(adj), np.concatenate(along))
+
+
+def edge_blur_px(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """Each tag's edge blur (N,): the sigma (px) of the Gaussian edge whose contrast across its
+    black square's edges at +-EDGE_BLUR_NEAR_PX is the share it is at +-r of the contrast at
+    +-r, r = one cell less 2.5 px (1 to 2.5 px: clear of the next cell's edge), the medians over
+    nine points along the middle half of each side.  The lens's blur, the pixel's area and the
+    bilinear sampling together, as the ring's samples see them: 0.65-0.9 px on the sim's default
+    frames (lens blur 0.6 px), 1.4-1.7 px with a 1.6 px lens.  Noise and a nearer cell edge bias
+    it little; it is a scale for the checks, not a measurement."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    N = len(q)
+    if N == 0:
+        return np.zeros(0)
+    g = np.asarray(grey, dtype=np.float32)
+    seg = np.roll(q, -1, axis=1) - q
+    u = seg / np.maximum(np.linalg.norm(seg, axis=2, keepdims=True), 1e-9)
+    n_out = np.stack([u[..., 1], -u[..., 0]], axis=2)
+    cell = np.minimum(np.abs(np.sum(np.roll(seg, 1, axis=1) * n_out, axis=2)),
+                      np.abs(np.sum(np.roll(seg, -1, axis=1) * n_out, axis=2))).min(axis=1) / CELLS
+    far = np.clip(cell - 2.5, MIN_REACH_PX, MAX_REACH_PX)                       # (N,)
+    t = np.linspace(0.25, 0.75, 9)
+    on = q[:, :, None, :] + t[None, None, :, None] * seg[:, :, None, :]        # (N, 4, 9, 2)
+    normal = n_out[:, :, None, :]
+
+    def across(r) -> np.ndarray:
+        a, b = on + r * normal, on - r * normal
+        va = _bilinear(g, a[..., 0].ravel(), a[..., 1].ravel())
+        vb = _bilinear(g, b[..., 0].ravel(), b[..., 1].ravel())
+        return np.median((va - vb).reshape(N, -1), axis=1)
+
+    near_c = across(EDGE_BLUR_NEAR_PX)
+    far_c = across(far[:, None, None, None])
+    share = np.clip(near_c / np.maximum(far_c, 1e-6), 0.0, 1.0)
+    # (2 Phi(near / s) - 1) / (2 Phi(far / s) - 1) = share, decreasing in s: bisect on log s
+    lo, hi = np.full(N, math.log(0.1)), np.full(N, math.log(10.0))
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        s = np.exp(mid)
+        f = (2 * ndtr(EDGE_BLUR_NEAR_PX / s) - 1) / (2 * ndtr(far / s) - 1)
+        lo, hi = np.where(f > share, mid, lo), np.where(f > share, hi, mid)
+    return np.exp(0.5 * (lo + hi))
+
+
+def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
+    """How far each tag's black border and white quiet zone stray from its own black and white,
+    along the whole perimeter (N,): the largest shortfall of a sample, as a fraction of the
+    tag's contrast (the two clusters of its 64 cells' centres).  A clean tag reads ~0; something
+    in front of it crossing the border or the quiet zone (a strut), a quiet zone narrower than a
+    cell or a shadow's edge reads more.  Points a quarter cell apart along the ring, at
+    RING_DEPTHS_CELLS from the black square's edge on either side, those in the image (a tag may
+    run off the frame) and at least RING_MIN_EDGE_PX, or RING_MIN_EDGE_SIGMAS of the tag's edge
+    blur (`edge_blur_px`) if that is more, from every edge of their ring cell (on a small tag, one
+    seen very obliquely or through a blurred lens, the blur of a cell's edges meets in its middle);
+    quads (N, 4, 2), corner 0 the marker's top-left."""
+    q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
+    if len(q) == 0:
+        return np.zeros(0)
+    uv1, quiet, side, margin, adj, along = _ring_points()
+    pts = _unit_square_to_quads(q, uv1)
+    H, W = np.shape(grey)
+    v = _bilinear(np.asarray(grey, dtype=np.float32), pts[..., 0], pts[..., 1])
+    inside = (pts[..., 0] >= 0) & (pts[..., 0] <= W - 1) & (pts[..., 1] >= 0) & (pts[..., 1] <= H - 1)
+    # each side's cell across it: the adjacent sides' extent along its normal, over 8
+    seg = np.roll(q, -1, axis=1) - q
+    u = seg / np.linalg.norm(seg, axis=2, keepdims=True)
+    n_out = np.stack([u[..., 1], -u[..., 0]], axis=2)
+    across = np.minimum(np.abs(np.sum(np.roll(seg, 1, axis=1) * n_out, axis=2)),
+                        np.abs(np.sum(np.roll(seg, -1, axis=1) * n_out, axis=2))) / CELLS     # (N, 4)
+    clear = np.maximum(RING_MIN_EDGE_PX, RING_MIN_EDGE_SIGMAS * edge_blur_px(grey, q))[:, None]   # (N, 1)
+    inside &= (across[:, side] * margin[None, :] >= clear) & (across[:, adj] * along[None, :] >= clear)
+    dark, bright = _tag_levels(grey, q)
+    contrast = np.maximum(bright - dark, 1e-6)[:, None]
+    short = np.where(quiet[None, :], bright[:, None] - v, v - dark[:, None]) / contrast
+    return np.where(inside, short, -np.inf).max(axis=1, initial=0.0)

@@ -1,5 +1,5 @@
 """Simulated camera (docs/protocols.md §6): an HTTP snapshot endpoint that renders the world's
-AprilTags from the true camera pose with `sim_devices.render.render_tags`.
+AprilTags and truss from the true camera pose with `sim_devices.render.render_tags`.
 
 `GET <the rig's path>` (the sim rig's `/frame.jpg`) renders the view at the moment of the request
 and sends it as an IP camera does: a JPEG at the camera's `jpeg_quality` (`image/jpeg`), or with
@@ -9,9 +9,13 @@ the Content-Type says which, whatever the path's extension.  Headers `X-Frame-Se
 `[sim.camera]` as written, what its calibration file holds), never the true lens the frames are
 rendered with: as a real camera, it does not know its own lens's errors.  `GET /id`.
 
-Known limitations: those of the renderer (no occlusion by the truss's struts, no motion blur: a
-frame taken while something moves shows one instant); JPEG is OpenCV's baseline encoder with its
-default 4:2:0 chroma subsampling, not a particular camera's."""
+The frame shows the truss built so far too (`sim_devices.render_truss`: struts and nodes in front
+of and behind the tags), always, imaged as the tags are (the lens's depth of field, vignetting
+and light, the sensor's noise, then the JPEG).
+
+Known limitations: those of the renderer (no shadows, no glare, no motion blur: a frame taken
+while something moves shows one instant); JPEG is OpenCV's baseline encoder with its default
+4:2:0 chroma subsampling, not a particular camera's."""
 
 from __future__ import annotations
 

@@ -27,19 +27,23 @@ tags with a corner behind the near plane or a face pointing away are skipped):
    to where it meets the bowed surface, before step 2.  The blur is the lens's own, or with a
    `Defocus` the lens's own combined with the thin lens's circle of confusion at the tag's depth.
    A tag's black and white levels are times its light (`TagLook.gain`).
-3. The scene's radiance times a gain map (vignetting, the light across the frame), then sensor
-   noise: photon shot noise (variance signal * 255 / full well, grey levels^2) and read noise,
-   then 8-bit BGR.  (JPEG, when the camera sends it, is the camera's: `sim_devices.camera`.)
+3. Whatever `render_tags`'s overlay draws into that noise-free image (the truss's struts and
+   nodes, `sim_devices.render_truss`, in front of and behind the tags by the tags' depth buffer).
+4. The scene's radiance (tags, truss and background alike) times a gain map (vignetting, the light
+   across the frame), then sensor noise: photon shot noise (variance signal * 255 / full well,
+   grey levels^2) and read noise, then 8-bit BGR.  (JPEG, when the camera sends it, is the camera's: `sim_devices.camera`.)
 
 The background (a grey level, or an image of the frame that is blurred like the tags) is not
 distorted: it is taken to be what the camera sees behind the tags.
 
 Known limitations: no shading model beyond a tag's one light level (no glare, no specular
 reflection, no shadows), no motion blur, no rolling shutter, no fixed-pattern noise or hot pixels,
-no occlusion by anything other than other tags; a tag partly behind the camera is dropped whole
-rather than clipped; the blur is applied to each tag at its centre's depth (not per pixel across a
-steeply inclined tag) and not across an occluding tag's outline; the background is blurred by the
-lens's own blur only.
+no occlusion by anything other than other tags and the truss (the truss is drawn by
+`sim_devices.render_truss`, through `render_tags`'s overlay and the depth buffer `render_grey`
+keeps: the plane of each tag's corners, a bowed tag's bow left out of it); a tag partly behind the
+camera is dropped whole rather than clipped; the blur is applied to each tag at its centre's depth
+(not per pixel across a steeply inclined tag) and not across an occluding tag's outline; the
+background is blurred by the lens's own blur only.
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -340,8 +344,10 @@ def _bowed(X: np.ndarray, Y: np.ndarray, gx: np.ndarray, gy: np.ndarray, K: np.n
 
 def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: np.ndarray, dist: np.ndarray,
               tag_id: int, size_m: float, M: np.ndarray, black: float, white: float, blur: float,
-              look: TagLook | None = None) -> None:
-    """Composite one tag into `img` (grey levels, float32), in place."""
+              look: TagLook | None = None, depth: np.ndarray | None = None) -> None:
+    """Composite one tag into `img` (grey levels, float32), in place; with `depth`, also keep the
+    tag plane's depth (m along the optical axis; the plane of its corners, a bow left out) where the
+    tag covers more than half a pixel and is nearer than what `depth` holds."""
     height, width = img.shape
     R, t = M[:3, :3], M[:3, 3]
     cells = _marker_cells(tag_id)                          # (n, n): quiet zone + black square
@@ -427,6 +433,13 @@ def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: n
     roi = img[y0:y1, x0:x1]
     roi *= 1.0 - acc_a
     roi += acc_s
+    if depth is not None:   # the ray through each ideal pixel meets the tag plane n.X = n.t at this z
+        n_ = R[:, 2]
+        ray = n_[0] * (gx - K[0, 2]) / K[0, 0] + n_[1] * (gy - K[1, 2]) / K[1, 1] + n_[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where((acc_a > 0.5) & (ray * float(n_ @ t) > 0), float(n_ @ t) / ray, np.inf)
+        droi = depth[y0:y1, x0:x1]
+        np.minimum(droi, z.astype(np.float32), out=droi)
 
 
 def render_grey(
@@ -442,11 +455,15 @@ def render_grey(
     blur_sigma_px: float = 0.6,
     defocus: Defocus | None = None,
     looks: Mapping[int, TagLook] | None = None,
+    depth: np.ndarray | None = None,
 ) -> np.ndarray:
     """The noise-free image `render_tags` starts from, in grey levels, before the light's gain,
     noise and rounding to 8 bits: (height, width) float32.  Studies use it to tell the sensor's
     quantisation from the rest.  defocus: blur each tag by its depth (`Defocus`; None: blur_sigma_px
-    everywhere); looks: tag id -> `TagLook` (its light, its bow; absent ids are ideal tags)."""
+    everywhere); looks: tag id -> `TagLook` (its light, its bow; absent ids are ideal tags).
+    `depth`: a (height, width) float32 array the caller filled with +inf; each tag drawn writes its
+    plane's depth (m along the optical axis) where it covers more than half a pixel, the nearest
+    kept (what `sim_devices.render_truss` tests the truss against)."""
     K = np.asarray(K, dtype=float).reshape(3, 3)
     if width <= 0 or height <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
@@ -487,7 +504,7 @@ def render_grey(
         if defocus is not None:
             blur = round(defocus.sigma_px(M[2, 3], K[0, 0], blur_sigma_px) / _DEFOCUS_STEP_PX) * _DEFOCUS_STEP_PX
         g = 1.0 if look is None else look.gain
-        _draw_tag(img, ideal, K, d, tag_id, size_m, M, black_level * g, white_level * g, blur, look)
+        _draw_tag(img, ideal, K, d, tag_id, size_m, M, black_level * g, white_level * g, blur, look, depth)
     return img
 
 
@@ -508,6 +525,7 @@ def render_tags(
     looks: Mapping[int, TagLook] | None = None,
     gain: np.ndarray | None = None,
     full_well_e: float = 0.0,
+    overlay: Callable[[np.ndarray, np.ndarray], None] | None = None,
 ) -> np.ndarray:
     """Render AprilTag 36h11 tags seen by a camera.
 
@@ -516,14 +534,22 @@ def render_tags(
     the face.  background: a gray level (0-255) or an image of the frame's size.  blur_sigma_px is
     the lens's blur (Gaussian sigma, px), at the focus distance if `defocus` is given (then each
     tag is blurred for its depth, `Defocus`); looks: per tag id, its light and bow (`TagLook`).
+    `overlay(grey, depth)`, if given, draws more of the scene (the truss: `sim_devices.render_truss`)
+    into the noise-free grey image in place, against the tags' depth buffer (`render_grey`), before
+    the gain and the noise: it is lit and vignetted as the tags are.
     gain: (height, width) factors on the scene's radiance (vignetting, uneven light), before the
     noise.  noise_sigma: the read noise, grey levels; full_well_e: electrons at white (255), adding
     photon shot noise of variance signal * 255 / full_well_e grey levels^2 (0: none).  Returns an
-    (height, width, 3) uint8 BGR image.  Without defocus, looks, gain and shot noise the image and
-    the draws from `rng` are what they were before those existed.
+    (height, width, 3) uint8 BGR image.  Without defocus, looks, gain and shot noise, and with no
+    overlay or one that draws nothing, the image and the draws from `rng` are what they were before
+    those existed.
     """
+    depth = None if overlay is None else np.full((height, width), np.inf, np.float32)
     img = render_grey(K, dist, width, height, tags, background=background, black_level=black_level,
-                      white_level=white_level, blur_sigma_px=blur_sigma_px, defocus=defocus, looks=looks)
+                      white_level=white_level, blur_sigma_px=blur_sigma_px, defocus=defocus, looks=looks,
+                      depth=depth)
+    if overlay is not None:
+        overlay(img, depth)
     if gain is not None:
         if gain.shape != img.shape:
             raise ValueError(f"gain map is {gain.shape[1]}x{gain.shape[0]}, the frame is {width}x{height}")

@@ -16,8 +16,10 @@
 - the world frame is where the turntable plate sits at encoder zero, so the structure turns about
   the true axis: world_T_structure(a) = world_T_axis · Rz(a + repeatability) · axis_T_world ·
   world_T_structure_design(0);
-- the BORG structure (`BorgTruth`): which modules are placed so far (only their tags are seen),
-  per-module pose errors, partial deployments, displaced tags;
+- the BORG structure (`BorgTruth`): which modules are placed so far (their tags, and their struts
+  and nodes: `BorgTruth.truss`, drawn in every frame by `sim_devices.render_truss`, in front of the
+  tags they hide), per-module pose errors, partial deployments, displaced tags;
+- the lab's lamp (`LIGHT_WORLD`), which shades the truss;
 - each IPJR's actuator (`sim_devices.ipjr.IpjrActuator`), and the strut it is attached to;
 - the camera as it really images (`TrueCamera`, `lab/imaging.py`: the rig's `[sim.camera]` and
   `[sim.tags]` with the scenario's `[camera]` / `[tags]` keys replacing theirs): the true lens
@@ -25,7 +27,9 @@
   `distortion_error_px` at the frame's corners), its depth of field, vignetting and the light
   across the frame (one gain map per world), shot and read noise; and every tag as printed and lit:
   its size off by its print scale (`printed_size_m`: `tags_in_view` gives the size as printed, the
-  pose stays the tag's centre and corners' plane), its bow and its light level (`tag_look`).
+  pose stays the tag's centre and corners' plane), its bow and its light level (`tag_look`).  The
+  truss is imaged by the same camera: blurred for its depth, vignetted and lit by the gain map,
+  and under the same noise as the tags.
 
 Procedures use it in simulation to act as the operator (place a module, attach an IPJR) and to
 score their estimates against the truth.  It never reads anything the drivers compute.
@@ -60,6 +64,11 @@ from sim_devices.ipjr import IpjrActuator
 from sim_devices.motion import Axis
 from sim_devices.render import Defocus, TagLook, distortion_with_error, lighting_field, vignetting_gain
 from sim_devices.stewart import platform_pose
+from sim_devices.truss_geometry import TrussOccluders, in_camera, truss_occluders
+
+# The lab's lamp: the direction towards it in the world frame (above the structure, on the
+# camera's side); it shades the truss's struts and nodes (sim_devices.render_truss).
+LIGHT_WORLD = np.array([-0.45, 0.25, 0.86]) / np.linalg.norm([-0.45, 0.25, 0.86])
 
 # Independent random streams (the k in default_rng([seed, k])).
 _STREAM_CAMERA, _STREAM_TT_TAGS, _STREAM_MOTION, _STREAM_LIFT, _STREAM_IPJR = 1, 2, 3, 4, 100
@@ -213,6 +222,14 @@ class BorgTruth:
         if tag in self._tag_fix:
             T = self._tag_fix[tag].compose(T)
         return T
+
+    def truss(self) -> TrussOccluders:
+        """The struts and node bodies of the modules placed so far, where they really are
+        (structure frame; `sim_devices.truss_geometry`)."""
+        with self._lock:
+            placed = list(self.placed)
+            return truss_occluders(self.model, placed, {n: self.structure_T_module(n) for n in placed},
+                                   {n: self.deployed_height_m(n) for n in placed})
 
     def visible_tag_ids(self) -> list[int]:
         """Tags that exist right now: the turntable's and those of placed modules."""
@@ -478,13 +495,14 @@ class SimWorld:
         size as printed (`printed_size_m`), the pose the tag's centre and corners' plane's."""
         if self.borg is None:
             return []
-        camera_T_world = self.world_T_camera().inverse()
-        world_T_structure = self.world_T_structure()
-        out = []
-        for tid in self.borg.visible_tag_ids():
-            out.append((tid, self.printed_size_m(tid),
-                        camera_T_world.compose(world_T_structure).compose(self.borg.structure_T_tag(tid))))
-        return out
+        return self._tags_seen_from(self.world_T_camera().inverse().compose(self.world_T_structure()))
+
+    def _tags_seen_from(self, camera_T_structure: Pose3) -> list[tuple[int, float, Pose3]]:
+        """(id, size as printed, camera_T_tag) of every tag that exists now, seen from a camera at
+        `camera_T_structure` (what `tags_in_view` and `render` give for the camera's true pose)."""
+        assert self.borg is not None
+        return [(tid, self.printed_size_m(tid), camera_T_structure.compose(self.borg.structure_T_tag(tid)))
+                for tid in self.borg.visible_tag_ids()]
 
     def reseed_camera(self, seed: Any) -> None:
         """Restart the camera's noise stream (e.g. from [seed, stream, step, view]), so that a
@@ -498,7 +516,9 @@ class SimWorld:
 
     def render(self) -> np.ndarray:
         """The image the camera's sensor reads now (BGR uint8), before the camera encodes it (JPEG at
-        the camera's jpeg_quality: `sim_devices.camera.encode_frame`)."""
+        the camera's jpeg_quality: `sim_devices.camera.encode_frame`): the tags that exist, and the
+        truss built so far in front of and behind them (always: a real camera cannot look through
+        struts), both through the same lens, light and noise."""
         from sim_devices.render import render_tags
 
         cam = self.camera
@@ -506,8 +526,31 @@ class SimWorld:
             raise UserError(f"rig {self.rig.name!r} has no camera")
         with self._lock:
             rng = np.random.default_rng(self._camera_rng.integers(2**63))
-        return render_tags(cam.K, cam.dist, cam.width_px, cam.height_px, self.tags_in_view(),
-                           blur_sigma_px=cam.blur_px, noise_sigma=cam.pixel_noise, rng=rng,
-                           defocus=cam.defocus(), looks=self._looks or None, gain=self.gain_map(),
-                           full_well_e=cam.imaging.full_well_e)
+        imaging = dict(blur_sigma_px=cam.blur_px, noise_sigma=cam.pixel_noise, rng=rng, defocus=cam.defocus(),
+                       looks=self._looks or None, gain=self.gain_map(), full_well_e=cam.imaging.full_well_e)
+        if self.borg is None:
+            return render_tags(cam.K, cam.dist, cam.width_px, cam.height_px, [], **imaging)
+        camera_T_world = self.world_T_camera().inverse()
+        camera_T_structure = camera_T_world.compose(self.world_T_structure())
+        return render_tags(cam.K, cam.dist, cam.width_px, cam.height_px, self._tags_seen_from(camera_T_structure),
+                           overlay=self._truss_overlay(camera_T_structure, camera_T_world), **imaging)
+
+    def _truss_overlay(self, camera_T_structure: Pose3, camera_T_world: Pose3):
+        """`render_tags`'s overlay that draws the truss built so far as the camera sees it from
+        there (None: nothing built), through the true lens and its depth of field, lit by the lamp."""
+        from sim_devices.render_truss import draw_truss
+
+        cam = self.camera
+        assert cam is not None and self.borg is not None
+        truss = in_camera(self.borg.truss(), camera_T_structure)
+        if truss.n_struts == 0 and truss.n_nodes == 0:
+            return None
+        light = camera_T_world.rotation().matrix() @ LIGHT_WORLD
+        defocus = cam.defocus()
+
+        def overlay(grey: np.ndarray, depth: np.ndarray) -> None:
+            draw_truss(grey, depth, cam.K, cam.dist, truss, blur_sigma_px=cam.blur_px, defocus=defocus,
+                       light_camera=light)
+
+        return overlay
 

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
-from estimation.fiducials import TagDetector
+from estimation.fiducials import DetectorConfig, TagDetector
 
 HERE = os.path.join(os.path.dirname(__file__), "data", "photos")
 
@@ -28,8 +28,9 @@ def reference() -> dict:
 
 @pytest.fixture(scope="module")
 def detector() -> TagDetector:
-    # a photograph's tags are not the lab's: every id, any size; corners only, so no camera
-    return TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)})
+    # a photograph's tags are not the lab's: every id, any size, margins as printed (many cube faces
+    # have less than a cell of white: no quiet-zone ring check); corners only, so no camera
+    return TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)}, DetectorConfig(quiet_zone=False))
 
 
 def photo(name: str) -> np.ndarray:

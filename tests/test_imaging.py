@@ -153,18 +153,28 @@ def test_jpeg_zero_is_lossless_png_and_the_ideal_camera_renders_as_before():
     back = cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR)
     assert kind == "image/jpeg" and body[:2] == b"\xff\xd8"
     assert not np.array_equal(back, img) and np.abs(back.astype(float) - img).mean() < 2.0
-    # the ideal camera: the world renders exactly what the renderer made before issue 19
+    # the ideal camera: the world renders exactly what the renderer made before issue 19's imaging.
+    # A tag-only scene (nothing placed: the turntable's tags, no truss in view) is the plain
+    # renderer's frame, byte for byte; with the cube placed the truss is drawn too (always, as a
+    # real camera sees it), and the frame is the plain renderer's with the world's truss overlay
+    # and nothing else: no defocus, no tag looks, no gain map, no shot noise
     w = world(**IDEAL_KEYS)
-    w.borg.place_all()
     assert w.camera.imaging.ideal and w.camera.jpeg_quality == 0
-    w.reseed_camera(11)
-    got = w.render()
-    w.reseed_camera(11)
     c = w.camera
-    rng = np.random.default_rng(w._camera_rng.integers(2**63))
-    before = render_tags(c.K, c.dist, c.width_px, c.height_px, w.tags_in_view(), blur_sigma_px=c.blur_px,
-                         noise_sigma=c.pixel_noise, rng=rng)
-    assert np.array_equal(got, before)
+    for placed in (False, True):
+        if placed:
+            w.borg.place_all()
+        w.reseed_camera(11)
+        got = w.render()
+        w.reseed_camera(11)
+        rng = np.random.default_rng(w._camera_rng.integers(2**63))
+        c_T_w = w.world_T_camera().inverse()
+        overlay = w._truss_overlay(c_T_w.compose(w.world_T_structure()), c_T_w)
+        assert (overlay is None) == (not placed)
+        before = render_tags(c.K, c.dist, c.width_px, c.height_px, w.tags_in_view(), blur_sigma_px=c.blur_px,
+                             noise_sigma=c.pixel_noise, rng=rng, overlay=overlay)
+        assert np.array_equal(got, before)
+        assert len(w.tags_in_view()) == (len(w.borg.model.tags) if placed else len(w.borg.model.turntable.tag_ids))
 
 
 def test_the_camera_serves_jpeg_with_its_content_type_and_png_when_lossless():

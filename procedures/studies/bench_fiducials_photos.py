@@ -194,10 +194,11 @@ def _summary(rows: list[dict]) -> dict:
 def _ours():
     import numpy as np
 
-    from estimation.fiducials import TagDetector
+    from estimation.fiducials import DetectorConfig, TagDetector
 
-    # every id: a photograph's tags are not ours; corners only, so the camera does not matter
-    det = TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)})
+    # every id: a photograph's tags are not ours (nor their margins: no quiet-zone ring check);
+    # corners only, so the camera does not matter
+    det = TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)}, DetectorConfig(quiet_zone=False))
     return lambda g: list(zip(*det.find(g)))
 
 

@@ -27,9 +27,9 @@ def _same(a: tuple[int, np.ndarray], b: tuple[int, np.ndarray]) -> bool:
 
 def main() -> int:
     from procedures.studies import apriltag3
-    from estimation.fiducials import TagDetector
+    from estimation.fiducials import DetectorConfig, TagDetector
 
-    ours = TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)})
+    ours = TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)}, DetectorConfig(quiet_zone=False))
     out = {"convention": "corners in OpenCV pixel coordinates (pixel centres at integers), in aruco's order "
                          "(top-left, top-right, bottom-right, bottom-left of OpenCV 4's marker image); "
                          "AprilTag 3's corners p converted as p[[1, 0, 3, 2]] - 0.5",

@@ -1,0 +1,130 @@
+"""The BORG truss as solid things that hide tags: its struts and node bodies, where they really are.
+
+`truss_occluders` turns the design model (`lab.structures.borg`), the modules placed so far and
+their TRUE poses (a module offset, a deployable stopped short) into 3-D occluders in the
+structure frame: every strut of a placed module as a cylinder between its two nodes, every node a
+placed strut ends at as a sphere.  `sim_devices.render_truss` draws them in front of (and behind)
+the tags.  Pure functions, SI units, poses as `lab.geometry.Pose3`.
+
+Sizes:
+- struts: 19.05 mm (3/4 in) diameter, the strut end that enters a node socket
+  (`estimation.semantics.STRUT_END_DIAMETER_M`); the whole member is taken to be that size;
+- node bodies: spheres of 50 mm diameter.  A node's socket has a 40 mm chamfered mouth
+  (`estimation.semantics.SOCKET_MOUTH_M`), so the hub holding it is a little wider than that.
+
+Where the struts run: the design's edges (`Module.edges`): a deployable's twelve cell edges, a
+close-out strut's one edge, a close-out square's four sides and its diagonal.  An edge two modules
+bring (a square's side that is a deployable's strut) and a node many modules share are drawn once:
+a node where the first placed module that brings it puts it (assembly order: usually the
+deployable the others are attached to), every strut between its two nodes as drawn, so the truss
+stays connected.
+
+The truth applied: a module offset moves and turns the nodes it is first to bring rigidly about
+its anchor (`BorgTruth.set_module_offset`), and with them its struts; a deployable deployed to
+height h < spacing has its top face lowered by spacing - h (the same drop as its top tag), its
+four side struts shortened accordingly, and the members attached to its top nodes later follow
+them.  A close-out member placed off its design pose thus moves its tag, but not the nodes the
+modules before it brought (a few millimetres: nothing a tag's visibility depends on).
+
+Left out: the tags' brackets and the tag cards' thickness; the turntable plate and the rim tags'
+mounts; the Stewart platform, the lift and anything else of the rig; the hinges, knees and
+latches of a deployable (a partly deployed one keeps straight, shorter side struts instead of
+folding at its hinges); socket cups, plungers and fasteners (a node is a plain sphere); strut
+ends that stop at a socket instead of at the node's centre (hidden inside the sphere anyway); a
+tag knocked off its spot (`tag_displaced`) moves only the tag, not its member.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from lab.geometry import Pose3
+from lab.structures.borg import BorgModel
+
+__all__ = ["STRUT_DIAMETER_M", "NODE_DIAMETER_M", "TrussOccluders", "truss_occluders", "module_node_positions",
+           "in_camera"]
+
+STRUT_DIAMETER_M = 0.01905     # 3/4 in
+NODE_DIAMETER_M = 0.050
+
+
+@dataclass(frozen=True)
+class TrussOccluders:
+    """Cylinders (struts) and spheres (nodes), in one frame (structure or camera)."""
+
+    strut_a: np.ndarray          # (S, 3) one end of each strut's axis
+    strut_b: np.ndarray          # (S, 3) the other end
+    strut_radius_m: float
+    node_centre: np.ndarray      # (M, 3)
+    node_radius_m: float
+    strut_edge: tuple[tuple[int, int], ...] = ()   # the design edge (node ids) of each strut
+    node_id: tuple[int, ...] = ()                  # the design node id of each sphere
+
+    @property
+    def n_struts(self) -> int:
+        return len(self.strut_a)
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.node_centre)
+
+
+def module_node_positions(model: BorgModel, name: str, structure_T_module: Pose3 | None = None,
+                          deployed_height_m: float | None = None) -> dict[int, np.ndarray]:
+    """Where module `name`'s nodes really are (structure frame): its design nodes, a deployable's
+    top face lowered when it is deployed to `deployed_height_m` < spacing, then the whole moved by
+    the module's true pose `structure_T_module` against its design one (None: the design)."""
+    m = model.module_by_name[name]
+    pts = {int(i): np.array(model.nodes[i], dtype=float) for i in m.nodes}
+    if m.kind == "deployable" and deployed_height_m is not None and deployed_height_m < model.spacing_m:
+        bottom = min(p[2] for p in pts.values())
+        drop = model.spacing_m - float(deployed_height_m)
+        for i, p in pts.items():
+            if p[2] > bottom + 1e-9:
+                pts[i] = p - np.array([0.0, 0.0, drop])
+    if structure_T_module is not None:
+        fix = structure_T_module.compose(m.structure_T_module.inverse()).matrix()
+        for i, p in pts.items():
+            pts[i] = fix[:3, :3] @ p + fix[:3, 3]
+    return pts
+
+
+def truss_occluders(model: BorgModel, placed: Sequence[str],
+                    structure_T_module: Mapping[str, Pose3] | None = None,
+                    deployed_height_m: Mapping[str, float] | None = None,
+                    *, strut_diameter_m: float = STRUT_DIAMETER_M,
+                    node_diameter_m: float = NODE_DIAMETER_M) -> TrussOccluders:
+    """The struts and nodes of the modules `placed` (in placement order), in the structure frame,
+    each module at its true pose (`structure_T_module`, default the design) and deployed height
+    (`deployed_height_m`, default full).  Each node once, where the first placed module bringing
+    it puts it; each edge once, between its nodes."""
+    poses = structure_T_module or {}
+    heights = deployed_height_m or {}
+    node_at: dict[int, np.ndarray] = {}
+    edges: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+    for name in placed:
+        m = model.module_by_name[name]
+        pts = module_node_positions(model, name, poses.get(name), heights.get(name))
+        for e in m.edges:
+            key = (min(e), max(e))
+            if key not in edges:
+                for i in e:
+                    node_at.setdefault(int(i), pts[i])
+                edges[key] = (node_at[e[0]], node_at[e[1]])
+    keys = tuple(edges)
+    a = np.array([edges[k][0] for k in keys]).reshape(-1, 3)
+    b = np.array([edges[k][1] for k in keys]).reshape(-1, 3)
+    nodes = tuple(sorted(node_at))
+    c = np.array([node_at[i] for i in nodes]).reshape(-1, 3)
+    return TrussOccluders(a, b, strut_diameter_m / 2.0, c, node_diameter_m / 2.0, keys, nodes)
+
+
+def in_camera(occ: TrussOccluders, camera_T_structure: Pose3) -> TrussOccluders:
+    """The same occluders in the camera frame."""
+    M = camera_T_structure.matrix()
+    R, t = M[:3, :3], M[:3, 3]
+    return TrussOccluders(occ.strut_a @ R.T + t, occ.strut_b @ R.T + t, occ.strut_radius_m,
+                          occ.node_centre @ R.T + t, occ.node_radius_m, occ.strut_edge, occ.node_id)
