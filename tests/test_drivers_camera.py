@@ -59,10 +59,16 @@ def test_sim_frames_show_real_tags_where_the_true_pose_puts_them(bench):
     assert {0, 1, 2, 9, 15, 17, 21, 35} <= seen              # face 1 from the home pose
     K, dist = bench.world.camera.K, bench.world.camera.dist     # the true lens, not the calibration file's
     truth = {tid: (size, T) for tid, size, T in bench.world.tags_in_view()}   # the size as printed
-    for c, tid in zip(corners, ids.ravel()):
-        size, T = truth[int(tid)]
+    # aruco finds them; the project's detector reads their corners to a few hundredths of a pixel
+    # (aruco's own subpixel corners wander ~0.5 px on the realistic camera's noise)
+    from estimation.fiducials import TagDetector
+
+    found = TagDetector(K, dist, {tid: size for tid, (size, _) in truth.items()}).detect(f2.image)
+    assert {d.tag_id for d in found} >= {0, 1, 2, 9, 15, 21, 35}
+    for d in found:
+        size, T = truth[d.tag_id]
         want = tag_corners_px(K, T, size, dist)
-        assert np.max(np.linalg.norm(c.reshape(4, 2) - want, axis=1)) < 0.5   # px
+        assert np.max(np.linalg.norm(d.corners_px.reshape(4, 2) - want, axis=1)) < 0.5   # px
 
 
 def test_only_placed_modules_are_seen():
