@@ -364,11 +364,14 @@ def imaged_calibration_session(
     again (what a detector reads).  Pixels integrate over their area (`IMAGED_SUPERSAMPLE`).
     (camera_T_board, BGR image) each.
 
-    With the ideal imaging (`Imaging.ideal`, no gain) this is `calibration_session` with the
-    camera's K, dist, blur and read noise, image for image."""
+    With the ideal camera's imaging (`Imaging.ideal` but for the lens's distortion error and the
+    tags' keys; no gain) this is `calibration_session` with the camera's K, dist, blur and read
+    noise, image for image."""
     im = camera.imaging
     w, h = camera.width_px, camera.height_px
-    if im.ideal and gain is None:
+    # the tags' print keys are not this board's, and the lens's distortion error is in camera.dist
+    if im.with_overrides({"print_scale_sigma": 0.0, "flatness_m": 0.0, "distortion_error_px": 0.0}).ideal \
+            and gain is None:
         return calibration_session(camera.K, camera.dist, w, h, board, n, rng, blur_sigma_px=camera.blur_px,
                                    noise_sigma=camera.pixel_noise)
     views = calibration_views(camera.K, camera.dist, w, h, board, n, rng)
