@@ -382,10 +382,20 @@ class CalibrationResult:
             lines.append(f"WARNING: {w}")
         if self.truth:
             t = self.truth
+            Kt, dt = np.asarray(t["true_K"]), t["true_dist"]
+            lines.append(
+                f"truth (the simulated true lens): fx = {Kt[0, 0]:.2f} fy = {Kt[1, 1]:.2f} cx = {Kt[0, 2]:.2f} "
+                f"cy = {Kt[1, 2]:.2f} px, dist = " + " ".join(f"{x:+.5f}" for x in dt))
             lines.append(
                 f"vs truth: fx {t['fx_rel'] * 100:+.3f} %, fy {t['fy_rel'] * 100:+.3f} %, cx {t['cx_px']:+.2f} px, "
                 f"cy {t['cy_px']:+.2f} px; whole model: max {t['model_max_px']:.3f} px, rms {t['model_rms_px']:.3f} px "
                 f"over the image")
+            n = t.get("nominal")
+            if n:
+                lines.append(
+                    f"  (the maker's model, [sim.camera] as sim_camera.json holds it, vs truth: fx {n['fx_rel'] * 100:+.3f} %, "
+                    f"cx {n['cx_px']:+.2f} px, cy {n['cy_px']:+.2f} px; whole model max {n['model_max_px']:.3f} px, "
+                    f"rms {n['model_rms_px']:.3f} px)")
         return lines
 
 
@@ -509,6 +519,7 @@ def compare_intrinsics(estimate: Intrinsics, truth: Intrinsics, grid: int = 24) 
     proj, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), Ke, de)
     err = np.linalg.norm(proj.reshape(-1, 2) - pix.reshape(-1, 2), axis=1)
     return {
+        "true_K": Kt.tolist(), "true_dist": dt[:5].tolist(),
         "fx_rel": float(Ke[0, 0] / Kt[0, 0] - 1.0), "fy_rel": float(Ke[1, 1] / Kt[1, 1] - 1.0),
         "cx_px": float(Ke[0, 2] - Kt[0, 2]), "cy_px": float(Ke[1, 2] - Kt[1, 2]),
         "dist_diff": (de - dt)[:5].tolist(),
@@ -573,14 +584,18 @@ class CalibrationSession:
         return d
 
     def finish(self, *, fit_k3: bool = False, min_frames: int = DEFAULT_MIN_FRAMES,
-               truth: Intrinsics | None = None) -> CalibrationResult:
+               truth: Intrinsics | None = None, nominal: Intrinsics | None = None) -> CalibrationResult:
+        """Calibrate.  truth (simulation): the camera's true lens, which the result is compared with
+        (`compare_intrinsics`, in `result.truth`); nominal: the model the camera's maker states (the
+        simulated rig's calibration file), compared with the same truth under `truth["nominal"]`,
+        so the report says how much the calibration improved on it."""
         if self.recorder is None:
-            return self._finish(fit_k3, min_frames, truth)
+            return self._finish(fit_k3, min_frames, truth, nominal)
         from lab.recorder import topics
 
         self._steps += 1
         with self.recorder.step("calibrate", self._steps, {"fit_k3": fit_k3, "min_frames": min_frames}):
-            result = self._finish(fit_k3, min_frames, truth)
+            result = self._finish(fit_k3, min_frames, truth, nominal)
             i = result.intrinsics
             self.recorder.log_calibration(topics.CAMERA_CALIBRATION, i.K, i.dist, i.width_px, i.height_px,
                                           self.camera)
@@ -590,10 +605,14 @@ class CalibrationSession:
                 self.recorder.log_text("warning", w)
         return result
 
-    def _finish(self, fit_k3: bool, min_frames: int, truth: Intrinsics | None) -> CalibrationResult:
+    def _finish(self, fit_k3: bool, min_frames: int, truth: Intrinsics | None,
+                nominal: Intrinsics | None = None) -> CalibrationResult:
         result = calibrate(self.detections, self.board, fit_k3=fit_k3, min_frames=min_frames)
         if truth is not None:
             result.truth = compare_intrinsics(result.intrinsics, truth)
+            if nominal is not None:
+                n = compare_intrinsics(nominal, truth)
+                result.truth["nominal"] = {k: v for k, v in n.items() if k not in ("true_K", "true_dist")}
         return result
 
 

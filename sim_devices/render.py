@@ -60,7 +60,7 @@ from scipy.special import ndtr
 from lab.geometry import Pose3
 
 __all__ = ["TagToRender", "TagLook", "Defocus", "render_tags", "render_grey", "tag_corners_px", "pixel_edge_response",
-           "vignetting_gain", "lighting_field", "distortion_with_error", "QUIET_ZONE_CELLS",
+           "sensor_readout", "vignetting_gain", "lighting_field", "distortion_with_error", "QUIET_ZONE_CELLS",
            "COC_DIAMETER_PER_SIGMA"]
 
 # AprilTag 36h11: a 6x6 data grid inside a one-cell black border = 8 cells across the black square.
@@ -550,9 +550,19 @@ def render_tags(
                       depth=depth)
     if overlay is not None:
         overlay(img, depth)
+    return sensor_readout(img, gain=gain, noise_sigma=noise_sigma, full_well_e=full_well_e, rng=rng)
+
+
+def sensor_readout(img: np.ndarray, *, gain: np.ndarray | None = None, noise_sigma: float = 2.0,
+                   full_well_e: float = 0.0, rng: np.random.Generator | None = None) -> np.ndarray:
+    """What the sensor reads of a noise-free frame `img` ((height, width) float32 grey levels;
+    modified in place): times the `gain` map (vignetting, uneven light), then photon shot noise of
+    variance signal * 255 / full_well_e grey levels^2 (0: none) and the read noise `noise_sigma`,
+    rounded to 8 bits.  Returns (height, width, 3) uint8 BGR.  The AprilTag renderer's and the
+    ChArUco board renderer's (`sim_devices.charuco_render`) last step."""
     if gain is not None:
         if gain.shape != img.shape:
-            raise ValueError(f"gain map is {gain.shape[1]}x{gain.shape[0]}, the frame is {width}x{height}")
+            raise ValueError(f"gain map is {gain.shape[1]}x{gain.shape[0]}, the frame is {img.shape[1]}x{img.shape[0]}")
         img *= gain
     if full_well_e < 0:
         raise ValueError(f"full well must be >= 0 electrons, got {full_well_e}")

@@ -268,6 +268,46 @@ class TrueCamera:
         return Defocus(im.focus_distance_m, im.f_number, im.focal_length_m(float(self.K[0, 0])))
 
 
+def true_camera(rig: Rig, imaging: Imaging, rig_error: RigError, seed: int) -> TrueCamera:
+    """The simulated rig's camera as it really is: `[sim.camera]`'s lens with the rig error's focal
+    scale and principal point offset, its distortion moved by `imaging.distortion_error_px` (sign
+    and k1/k2 share from the lens's own stream of `seed`), imaging as given.  The world's camera,
+    and the one `lab calibrate camera --sim` renders its board with."""
+    assert rig.sim is not None
+    c = rig.sim.camera
+    f = rig_error.focal_scale
+    du, dv = rig_error.principal_point_offset_px
+    K0 = np.array([[c["fx_px"], 0.0, c["cx_px"]], [0.0, c["fy_px"], c["cy_px"]], [0.0, 0.0, 1.0]])
+    K = np.array([[c["fx_px"] * f, 0.0, c["cx_px"] + du], [0.0, c["fy_px"] * f, c["cy_px"] + dv],
+                  [0.0, 0.0, 1.0]])
+    dist0 = np.asarray(c["dist"], dtype=float)
+    dist = dist0
+    if imaging.distortion_error_px > 0:
+        lens = np.random.default_rng([seed, _STREAM_LENS])
+        sign, share = (1.0 if lens.random() < 0.5 else -1.0), float(lens.uniform(0.0, 1.0))
+        dist = distortion_with_error(K0, dist0, int(c["width_px"]), int(c["height_px"]),
+                                     imaging.distortion_error_px, sign, share)
+    f_m = imaging.focal_length_m(float(K[0, 0]))
+    if imaging.focus_distance_m and imaging.focus_distance_m < 2 * f_m:
+        raise UserError(f"camera focus distance {imaging.focus_distance_m} m is within twice the focal "
+                        f"length ({2 * f_m:g} m): a lens cannot focus there")
+    return TrueCamera(K, dist, int(c["width_px"]), int(c["height_px"]), imaging.pixel_noise,
+                      imaging.blur_px, imaging, K0, dist0)
+
+
+def camera_gain_map(cam: TrueCamera, seed: int) -> np.ndarray | None:
+    """The scene radiance's factor per pixel of `cam`'s frame: vignetting times the light across
+    the frame (from the light's own stream of `seed`); None when both are off."""
+    im = cam.imaging
+    if im.vignetting == 0 and im.lighting_variation == 0:
+        return None
+    g = vignetting_gain(cam.width_px, cam.height_px, im.vignetting)
+    if im.lighting_variation > 0:
+        g *= lighting_field(cam.width_px, cam.height_px, im.lighting_variation,
+                            np.random.default_rng([seed, _STREAM_LIGHT]))
+    return g
+
+
 class SimWorld:
     def __init__(self, rig: Rig, scenario: Scenario | None = None, *, speedup: float | None = None,
                  borg_n: int | None = None) -> None:
@@ -340,27 +380,9 @@ class SimWorld:
         self._looks: dict[int, TagLook] = {}
         self._print_scale: dict[int, float] = {}
         if rig.camera:
-            c = sim.camera
             # the rig's imaging, with the keys the scenario names replaced (lab/imaging.py)
             imaging = sim.imaging.with_overrides(self.scenario.camera.overrides())
-            f = self.rig_error.focal_scale
-            du, dv = self.rig_error.principal_point_offset_px
-            K0 = np.array([[c["fx_px"], 0.0, c["cx_px"]], [0.0, c["fy_px"], c["cy_px"]], [0.0, 0.0, 1.0]])
-            K = np.array([[c["fx_px"] * f, 0.0, c["cx_px"] + du], [0.0, c["fy_px"] * f, c["cy_px"] + dv],
-                          [0.0, 0.0, 1.0]])
-            dist0 = np.asarray(c["dist"], dtype=float)
-            dist = dist0
-            if imaging.distortion_error_px > 0:
-                lens = np.random.default_rng([self.seed, _STREAM_LENS])
-                sign, share = (1.0 if lens.random() < 0.5 else -1.0), float(lens.uniform(0.0, 1.0))
-                dist = distortion_with_error(K0, dist0, int(c["width_px"]), int(c["height_px"]),
-                                             imaging.distortion_error_px, sign, share)
-            f_m = imaging.focal_length_m(float(K[0, 0]))
-            if imaging.focus_distance_m and imaging.focus_distance_m < 2 * f_m:
-                raise UserError(f"camera focus distance {imaging.focus_distance_m} m is within twice the focal "
-                                f"length ({2 * f_m:g} m): a lens cannot focus there")
-            self.camera = TrueCamera(K, dist, int(c["width_px"]), int(c["height_px"]), imaging.pixel_noise,
-                                     imaging.blur_px, imaging, K0, dist0)
+            self.camera = true_camera(rig, imaging, self.rig_error, self.seed)
             if self.borg is not None:
                 self._draw_tag_prints(imaging)
 
@@ -411,11 +433,7 @@ class SimWorld:
             return None
         with self._lock:
             if self._gain is None:
-                g = vignetting_gain(cam.width_px, cam.height_px, im.vignetting)
-                if im.lighting_variation > 0:
-                    g *= lighting_field(cam.width_px, cam.height_px, im.lighting_variation,
-                                        np.random.default_rng([self.seed, _STREAM_LIGHT]))
-                self._gain = g
+                self._gain = camera_gain_map(cam, self.seed)
             return self._gain
 
     # -- truth queries ------------------------------------------------------------------------------

@@ -32,13 +32,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Camera intrinsic calibration with a ChArUco board (or a plain chessboard: --board "
                     "chessboard:COLSxROWS:SQUARE_MM). Frames come from the rig's camera "
                     "(default; the operator is told where to hold the board), from image files (--frames DIR), or "
-                    "from the simulated camera's true model (--sim N, compared with the truth). Writes the "
+                    "from the simulated camera's true lens and imaging (--sim N, compared with that truth). Writes the "
                     "intrinsics file the camera driver reads (docs/hardware.md).")
     c.add_argument("--rig", metavar="FILE", help="rig file (default: the simulated bench, lab/rigs/sim.toml)")
     src = c.add_mutually_exclusive_group()
     src.add_argument("--frames", metavar="DIR", help="calibrate from the image files in DIR (png, jpg, bmp, tif)")
     src.add_argument("--sim", type=int, metavar="N",
-                     help="render N views of the board with the rig's simulated true camera ([sim.camera])")
+                     help="render N views of the board with the rig's simulated true camera and its imaging "
+                          "([sim.camera], [sim.rig_error]), compared with that true lens")
     c.add_argument("--board", metavar="SPEC",
                    help=f"the printed board, COLSxROWS:SQUARE_MM:MARKER_MM[:DICT][:legacy] (default {_HELP_BOARD}), "
                         f"or a plain chessboard, chessboard:COLSxROWS:SQUARE_MM (inner corners, e.g. chessboard:9x6:25)")
@@ -57,6 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--fit-k3", action="store_true", help="also fit k3 (wide-angle lenses); default: k3 = 0")
     c.add_argument("--seed", type=int, default=None, help="--sim: seed of the views and noise (default: the rig's)")
     c.add_argument("--save-frames", metavar="DIR", help="--sim: also write the rendered frames to DIR as PNG")
+    c.add_argument("--scenario", metavar="FILE",
+                   help="--sim: a scenario whose [camera] keys replace the rig's imaging, whose [rig_error] the "
+                        "rig's, whose seed the lens's (docs/scenarios.md; e.g. docs/scenarios/ideal_camera.toml)")
     c.add_argument("--json", action="store_true", help="print the result as JSON instead of the report")
     c.set_defaults(func=_camera)
 
@@ -122,15 +126,18 @@ def _camera(args: argparse.Namespace) -> int:
                         f"--frames DIR for chessboard photographs")
     if args.save_frames and args.sim is None:
         raise UserError("--save-frames writes simulated frames; use it with --sim N")
+    if args.scenario and args.sim is None:
+        raise UserError("--scenario sets up the simulated camera; use it with --sim N")
     if args.interval_s < 0:
         raise UserError(f"--interval-s {args.interval_s}: must be 0 or more seconds")
     rig = load_rig(args.rig)
     camera_name = rig.camera.name if rig.camera else "camera"
 
     truth: Intrinsics | None = None
+    nominal: Intrinsics | None = None
     frames: list[tuple[str, Any]] | None = None
     if args.sim is not None:
-        truth, frames = _sim_frames(rig, board, args.sim, args.seed, args.save_frames)
+        truth, nominal, frames = _sim_frames(rig, board, args.sim, args.seed, args.save_frames, args.scenario)
     elif args.frames:
         frames = read_frames(args.frames)
     else:
@@ -165,7 +172,7 @@ def _camera(args: argparse.Namespace) -> int:
                              say=say)
             finally:
                 cam.close()
-        result = session.finish(fit_k3=args.fit_k3, min_frames=min_frames, truth=truth)
+        result = session.finish(fit_k3=args.fit_k3, min_frames=min_frames, truth=truth, nominal=nominal)
         save_calibration(out, result.intrinsics, camera=camera_name)
         if recorder is not None:
             recorder.log_text("info", f"wrote {out}")
@@ -189,33 +196,43 @@ def _camera(args: argparse.Namespace) -> int:
     return 0
 
 
-def _sim_frames(rig: Any, board: Any, n: int, seed: int | None, save_dir: str | None):
+def _sim_frames(rig: Any, board: Any, n: int, seed: int | None, save_dir: str | None, scenario_path: str | None = None):
+    """The simulated rig's true camera (the world's: `sim_devices.world.true_camera`, the rig's
+    imaging with the scenario's [camera] keys, its [rig_error] or the rig's) and `n` board views it
+    renders with that imaging.  The lens and the light across the frame are the bench's (the
+    scenario's seed, as `lab sim` has them); `seed` (default the same) picks the views and noise."""
     import cv2
     import numpy as np
 
     from drivers.camera import Intrinsics
     from lab.errors import UserError
-    from sim_devices.charuco_render import calibration_session
+    from lab.scenario import Scenario, load_scenario
+    from sim_devices.charuco_render import imaged_calibration_session
+    from sim_devices.world import camera_gain_map, true_camera
 
     if rig.sim is None or rig.camera is None:
         raise UserError(f"--sim needs a simulated rig with a camera ([sim.camera]); rig {rig.source} has "
                         f"{'no [sim] table' if rig.sim is None else 'no [camera]'}")
-    c = rig.sim.camera
-    K = np.array([[c["fx_px"], 0.0, c["cx_px"]], [0.0, c["fy_px"], c["cy_px"]], [0.0, 0.0, 1.0]])
-    truth = Intrinsics(K, np.asarray(c["dist"], dtype=float), int(c["width_px"]), int(c["height_px"]))
-    rng = np.random.default_rng([rig.sim.seed if seed is None else seed, 0xCA1])
+    scenario = load_scenario(scenario_path) if scenario_path else Scenario(seed=rig.sim.seed)
+    imaging = rig.sim.imaging.with_overrides(scenario.camera.overrides())
+    rig_error = scenario.rig_error if scenario.rig_error is not None else rig.sim.rig_error
+    cam = true_camera(rig, imaging, rig_error, scenario.seed)
+    truth = Intrinsics(cam.K, cam.dist, cam.width_px, cam.height_px)
+    nominal = Intrinsics(cam.nominal_K, cam.nominal_dist, cam.width_px, cam.height_px)
+    view_seed = scenario.seed if seed is None else seed
+    rng = np.random.default_rng([view_seed, 0xCA1])
     try:
-        views = calibration_session(K, truth.dist, truth.width_px, truth.height_px, board.make(), n, rng,
-                                    blur_sigma_px=c["blur_px"], noise_sigma=c["pixel_noise"])
+        views = imaged_calibration_session(cam, board.make(), n, rng, gain=camera_gain_map(cam, scenario.seed),
+                                           light_rng=np.random.default_rng([view_seed, 0xCA1, 1]))
     except ValueError as exc:
         raise UserError(f"board {board.text()} with the simulated camera: {exc}") from None
     frames = [(f"sim-{i:03d}", img) for i, (_pose, img) in enumerate(views)]
     if save_dir:
         d = Path(save_dir)
         d.mkdir(parents=True, exist_ok=True)
-        for label, img in frames:
+        for label, img in frames:   # lossless: the frame as the detector read it (after the camera's JPEG)
             cv2.imwrite(str(d / f"{label}.png"), img)
-    return truth, frames
+    return truth, nominal, frames
 
 
 def _rig_hint(rig: Any, out: Path) -> str:
