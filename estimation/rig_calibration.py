@@ -20,9 +20,14 @@ Two things keep the covariances honest (measured on rendered surveys, docs/calib
   side (undistorted) is about cos(incidence); below `min_side_ratio` (0.65, about 50-60 deg of
   incidence in the rig survey) the sighting is dropped; above it a corner's sigma grows as the
   ratio^-2 (measured: 0.09 px face-on, 0.15 px near the limit).
-- the corner noise is measured, not assumed: the first pass's whitened residuals give the
-  a-posteriori variance factor (chi2 / degrees of freedom), and the second pass uses the corner
-  sigma it implies, so the marginals reflect how well the corners were really found.
+- the corner noise is measured, not assumed: each pass's whitened residuals give the
+  a-posteriori variance factor (chi2 / degrees of freedom), and the next pass uses the corner
+  sigma it implies, so the marginals reflect how well the corners were really found; the turntable
+  tags' glue scatter and their apparent scale scatter are measured the same way (variance
+  components of their prior groups), and the lens's radial distortion error and each turntable
+  tag's print scale are variables, so what the camera file and the printer got wrong is estimated
+  rather than read as a rig error.
+The calibration keeps the joint posterior (lab/rig_calibration.py): a run takes it as one prior.
 """
 
 from __future__ import annotations
