@@ -105,6 +105,20 @@ class RigCalibration:
         return p
 
 
+def _measured(data: dict[str, Any], key: str, maximum: float, unit: str, src: str) -> float:
+    """An optional measured sigma of the file: a number in (0, maximum], or nan when absent."""
+    if key not in data:
+        return float("nan")
+    try:
+        value = float(data[key])
+        if not (math.isfinite(value) and 0 < value <= maximum):
+            raise ValueError
+    except (TypeError, ValueError):
+        raise UserError(f"rig calibration {src}: {key}: expected a number in (0, {maximum:g}]{unit}, "
+                        f"got {data[key]!r}") from None
+    return value
+
+
 def joint_blocks(turntable_tags: Any) -> tuple[tuple[str | int, int], ...]:
     return (*((name, 6) for name in JOINT_POSES), ("K", 5), ("distortion", 2),
             *((int(t), 6) for t in sorted(turntable_tags)))
@@ -174,24 +188,8 @@ def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
     except (TypeError, ValueError):
         raise UserError(f"rig calibration {p}: distortion_correction: expected [dk1, dk2], got "
                         f"{data.get('distortion_correction')!r}") from None
-    corner_sigma = float("nan")
-    if "corner_sigma_px" in data:
-        try:
-            corner_sigma = float(data["corner_sigma_px"])
-            if not (math.isfinite(corner_sigma) and 0 < corner_sigma <= 5):
-                raise ValueError
-        except (TypeError, ValueError):
-            raise UserError(f"rig calibration {p}: corner_sigma_px: expected a number in (0, 5] px, "
-                            f"got {data['corner_sigma_px']!r}") from None
-    tag_scale = float("nan")
-    if "tag_scale_sigma" in data:
-        try:
-            tag_scale = float(data["tag_scale_sigma"])
-            if not (math.isfinite(tag_scale) and 0 < tag_scale <= 0.05):
-                raise ValueError
-        except (TypeError, ValueError):
-            raise UserError(f"rig calibration {p}: tag_scale_sigma: expected a number in (0, 0.05], "
-                            f"got {data['tag_scale_sigma']!r}") from None
+    corner_sigma = _measured(data, "corner_sigma_px", 5.0, " px", p)
+    tag_scale = _measured(data, "tag_scale_sigma", 0.05, "", p)
     joint = None
     if "joint_covariance" in data:
         n = sum(size for _, size in joint_blocks(tags))
