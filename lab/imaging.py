@@ -41,7 +41,8 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import Any, Callable
 
-__all__ = ["Imaging", "IDEAL", "SCENARIO_CAMERA_KEYS", "RIG_CAMERA_KEYS", "TAG_KEYS", "check", "parse_imaging"]
+__all__ = ["Imaging", "IDEAL", "SCENARIO_CAMERA_KEYS", "RIG_CAMERA_KEYS", "TAG_KEYS", "check", "parse_imaging",
+           "scenario_tables"]
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,14 @@ SCENARIO_CAMERA_KEYS = ("pixel_noise", "blur_px", "full_well_e", "focus_distance
                         "lighting_variation", "jpeg_quality", "distortion_error_px")
 RIG_CAMERA_KEYS = SCENARIO_CAMERA_KEYS + ("pixel_pitch_um",)
 TAG_KEYS = ("print_scale_sigma", "flatness_m")
+
+def scenario_tables(imaging: Imaging) -> str:
+    """A scenario's `[camera]` and `[tags]` tables that set every imaging key to `imaging`'s value
+    (e.g. `scenario_tables(IDEAL)`: the ideal camera, whatever the rig's defaults)."""
+    def table(name: str, keys: tuple[str, ...]) -> list[str]:
+        return [f"[{name}]"] + [f"{k} = {getattr(imaging, k)!r}" for k in keys]
+    return "\n".join(table("camera", SCENARIO_CAMERA_KEYS) + [""] + table("tags", TAG_KEYS)) + "\n"
+
 
 # (minimum, maximum, unit) of each key; beyond them a value is a unit mistake or a camera no one
 # would use, refused with the key named.

@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from lab.imaging import IDEAL, scenario_tables
 from procedures.console import Console, ConsoleRecorder
 
 LAB = [sys.executable, "-m", "lab"]
@@ -31,22 +32,8 @@ kind = "http_500"
 after_commands = 3
 count = 1
 
-# the ideal camera (docs/scenarios/ideal_camera.toml): this test is about what the console prints (a first module read on the realistic camera without a
-# survey is `uncertain`, 1-sigma 2.4 mm, and takes more views), not imaging
-[camera]
-pixel_noise = 2.0
-blur_px = 0.6
-focus_distance_m = 0
-full_well_e = 0
-vignetting = 0
-lighting_variation = 0
-jpeg_quality = 0
-distortion_error_px = 0
-
-[tags]
-print_scale_sigma = 0
-flatness_m = 0
-"""
+""" + scenario_tables(IDEAL)   # the ideal camera: this file is about what the console prints (a first
+# module read on the realistic camera without a survey is `uncertain`, 1-sigma 2.4 mm, and takes more views)
 
 
 def _run_redirected(args: list[str], out_file: Path) -> int:

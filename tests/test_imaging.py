@@ -403,3 +403,15 @@ def test_the_software_sees_the_calibration_file_never_the_true_lens():
     # the lens the frames are rendered with is not the file's: focal scale, principal point, distortion
     assert not np.allclose(true.K, cal["K"]) and not np.allclose(true.dist, cal["dist"])
     assert "true" not in json.dumps(served).replace("not the true lens", "")
+
+
+def test_scenario_tables_set_every_imaging_key_whatever_the_rigs_defaults():
+    import tomllib
+
+    from lab.imaging import scenario_tables
+
+    poor = IDEAL.with_overrides({"pixel_noise": 8.0, "jpeg_quality": 70, "flatness_m": 0.001})
+    for im in (IDEAL, poor):
+        w = SimWorld(RIG, parse_scenario(tomllib.loads("seed = 1\n" + scenario_tables(im)), "test"), speedup=1000)
+        assert w.camera.imaging == im.with_overrides({"pixel_pitch_um": w.camera.imaging.pixel_pitch_um})
+    assert SimWorld(RIG, parse_scenario(tomllib.loads(scenario_tables(IDEAL)), "t"), speedup=1000).camera.imaging.ideal

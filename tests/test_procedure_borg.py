@@ -183,10 +183,11 @@ def test_a_rig_with_errors_trusted_as_exact_flags_good_modules(tmp_path):
 
     e = load_rig().sim.rig_error.scaled(2.0).to_dict()
     table = "\n".join(f"{k} = {list(v) if isinstance(v, tuple) else v}" for k, v in e.items())
-    ideal = (Path(__file__).resolve().parents[1] / "docs" / "scenarios" / "ideal_camera.toml").read_text()
+    from lab.imaging import IDEAL, scenario_tables
+
     # the ideal camera: this test is about the rig's errors (on the realistic camera, without a survey,
     # the first module's 1-sigma is 2.4 mm: honestly `uncertain`, not flagged)
-    sc = _scenario(tmp_path, f"seed = 3\n[rig_error]\n{table}\n" + ideal.split("seed = 0", 1)[1])
+    sc = _scenario(tmp_path, f"seed = 3\n[rig_error]\n{table}\n" + scenario_tables(IDEAL))
     common = ["run", "borg", "--auto", "--quiet", "--modules", "4", "--on-flag", "continue", "--speedup", "40",
               "--scenario", sc]
     r = _run(common + ["--uncalibrated", "--observation", "pose", "--out", str(tmp_path / "trusted")])

@@ -35,24 +35,12 @@ from typing import Any
 import numpy as np
 
 from lab.executor import Trial, add_executor_arguments, open_study, without_executor_args
+from lab.imaging import IDEAL, scenario_tables
 
 # A scenario's [camera] and [tags] for each camera quality (omitted keys keep the rig's defaults).
 CAMERAS: dict[str, str] = {
     # the camera the simulator had before issue 19: read noise and a fixed blur, nothing else
-    "ideal": """[camera]
-pixel_noise = 2.0
-blur_px = 0.6
-full_well_e = 0
-focus_distance_m = 0
-vignetting = 0
-lighting_variation = 0
-jpeg_quality = 0
-distortion_error_px = 0
-
-[tags]
-print_scale_sigma = 0
-flatness_m = 0
-""",
+    "ideal": scenario_tables(IDEAL),
     "default": "",
     # a cheap webcam in poor light: corners near 0.1 px (0.093 px against the truth, seed 1;
     # the study reports it for every run)
