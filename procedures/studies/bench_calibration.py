@@ -35,7 +35,8 @@ from typing import Any
 
 import numpy as np
 
-from lab.executor import Trial, add_executor_arguments, open_study, without_executor_args
+from lab.executor import Trial, add_executor_arguments
+from procedures.studies.bench_common import report_study, run_trial_study
 
 # Faults among the first 9 modules, so --quick sees them all: a partial deployment and a 15 mm
 # offset must be flagged, a displaced tag rejected (its module unverified), a 2 mm offset passed.
@@ -203,14 +204,6 @@ def _rmse_over_bound(ts: list[dict[str, Any]]) -> float | None:
     return float(np.sqrt(np.mean(pos ** 2)) / np.sqrt(np.mean(bound ** 2)))
 
 
-def report(path: str) -> int:
-    """Print the table of a (possibly interrupted) study from its calibration.json."""
-    res = json.loads(Path(path).read_text())
-    res["rows"] = _aggregate(res["trials"])
-    print(to_markdown(res))
-    return 0
-
-
 def to_markdown(res: dict[str, Any]) -> str:
     lines = [f"`{res['command']}` ({res['runs']} runs, {res['wall_s']:.0f} s)", "",
              "| mode | rig error | runs | false flags | uncertain or unverified | faults caught | "
@@ -243,14 +236,17 @@ def to_markdown(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _progress(r: dict[str, Any]) -> str:
+    pe = max(r["position_errors_m"], default=float("nan")) * 1e3
+    return (f"  {r['mode']:<15} x{r['scale']:g} seed {r['seed']}: {r['false_flags']} false flags of "
+            f"{r['good']}, faults {r['faults_caught']}/{r['faults']}, max position error {pe:.2f} mm")
+
+
 def run(args: argparse.Namespace) -> int:
     from lab.errors import UserError
 
     if args.report:
-        try:
-            return report(args.report)
-        except (OSError, ValueError, KeyError) as exc:
-            raise UserError(f"--report {args.report}: not a study's calibration.json ({exc})") from None
+        return report_study(args.report, "calibration", _aggregate, to_markdown)
     seeds = args.seeds if args.seeds is not None else (2 if args.quick else 10)
     modules = args.modules if args.modules is not None else (9 if args.quick else 27)
     try:
@@ -263,42 +259,11 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--modes: expected some of {', '.join(MODES)}, got {args.modes!r}")
     if not 1 <= modules <= 27 or seeds < 1 or any(not 0 <= s <= 2.5 for s in scales):
         raise UserError("--modules must be in 1..27, --seeds >= 1, --scales in [0, 2.5]")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    finished: dict[str, dict[str, Any]] = {}
-    argv = without_executor_args([a for a in sys.argv[3:] if a != "--json"])
-    command = ("lab bench calibration " + " ".join(argv)).strip()
+    out = Path(args.out).resolve()
     # seed by seed across every configuration: with fewer workers than trials, an interrupted study
     # still covers every configuration
-    runs = [Trial(f"{mode}-x{scale:g}-seed{seed}", seed, RunSpec(str(out.resolve()), scale, mode, modules, args.speedup))
+    runs = [Trial(f"{mode}-x{scale:g}-seed{seed}", seed, RunSpec(str(out), scale, mode, modules, args.speedup))
             for seed in range(seeds) for scale in scales for mode in modes]
-    order = {t.key: i for i, t in enumerate(runs)}
-
-    def result(study_executor: str) -> dict[str, Any]:
-        trials = [finished[k] for k in sorted(finished, key=order.__getitem__)]
-        return {"command": command, "runs": len(trials), "wall_s": time.perf_counter() - t0, "seeds": seeds,
-                "modules": modules, "scales": scales, "rows": _aggregate(trials), "trials": trials,
-                "executor": study_executor}
-
-    fingerprint = {"bench": "calibration", "seeds": seeds, "modules": modules, "scales": scales, "modes": modes,
-                   "speedup": args.speedup}
-    with open_study(args, out, fingerprint, "lab bench calibration") as study:
-        def done(t: Trial, r: dict[str, Any]) -> None:
-            # written after each trial: an interrupted study's calibration.json has every finished one
-            finished[t.key] = r
-            (out / "calibration.json").write_text(json.dumps(result(study.describe()), indent=1))
-            if not args.json:
-                pe = max(r["position_errors_m"], default=float("nan")) * 1e3
-                study.say(f"  {r['mode']:<15} x{r['scale']:g} seed {r['seed']}: {r['false_flags']} false flags of "
-                          f"{r['good']}, faults {r['faults_caught']}/{r['faults']}, max position error {pe:.2f} mm")
-
-        study.map(calibration_trial, runs, on_result=done)
-        res = result(study.describe())
-        (out / "calibration.json").write_text(json.dumps(res, indent=1))
-        study.finish()
-    if args.json:
-        print(json.dumps({k: v for k, v in res.items() if k != "trials"}, indent=1))
-    else:
-        print(to_markdown(res))
-    return 0
+    return run_trial_study(args, "calibration", runs, calibration_trial,
+                           {"seeds": seeds, "modules": modules, "scales": scales, "modes": modes},
+                           _aggregate, to_markdown, _progress)

@@ -34,8 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from lab.executor import Trial, add_executor_arguments, open_study, without_executor_args
+from lab.executor import Trial, add_executor_arguments
 from lab.imaging import IDEAL, scenario_tables
+from procedures.studies.bench_common import report_study, run_trial_study
 
 # A scenario's [camera] and [tags] for each camera quality (omitted keys keep the rig's defaults).
 CAMERAS: dict[str, str] = {
@@ -216,21 +217,20 @@ def to_markdown(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def report(path: str) -> int:
-    res = json.loads(Path(path).read_text())
-    res["rows"] = aggregate(res["trials"])
-    print(to_markdown(res))
-    return 0
+def _progress(r: dict[str, Any]) -> str:
+    err = np.asarray(r["position_errors_m"], float)
+    ratio = err / np.asarray(r["sigmas_m"], float) if err.size else err
+    return (f"  {r['camera']:<8} x{r['scale']:g} seed {r['seed']}: {r['false_flags']} false flags of {r['good']}, "
+            f"faults {r['faults_caught']}/{r['faults']}, error median "
+            f"{np.median(err) * 1e3 if err.size else float('nan'):.2f} mm, |err|/1σ median "
+            f"{np.median(ratio) if ratio.size else float('nan'):.2f}")
 
 
 def run(args: argparse.Namespace) -> int:
     from lab.errors import UserError
 
     if args.report:
-        try:
-            return report(args.report)
-        except (OSError, ValueError, KeyError) as exc:
-            raise UserError(f"--report {args.report}: not a study's trust.json ({exc})") from None
+        return report_study(args.report, "trust", aggregate, to_markdown)
     seeds = args.seeds if args.seeds is not None else (2 if args.quick else 10)
     modules = args.modules if args.modules is not None else (9 if args.quick else 27)
     try:
@@ -244,42 +244,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--modules must be in 1..27, --seeds >= 1, --scales in [0, 2.5]")
     if not (math.isfinite(args.speedup) and 1 <= args.speedup <= 1000):
         raise UserError(f"--speedup must be in [1, 1000], got {args.speedup}")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    finished: dict[str, dict[str, Any]] = {}
-    argv = without_executor_args([a for a in sys.argv[3:] if a != "--json"])
-    command = ("lab bench trust " + " ".join(argv)).strip()
-    runs = [Trial(f"{camera}-x{scale:g}-seed{seed}", seed, RunSpec(str(out.resolve()), scale, camera, modules, args.speedup))
+    out = Path(args.out).resolve()
+    runs = [Trial(f"{camera}-x{scale:g}-seed{seed}", seed, RunSpec(str(out), scale, camera, modules, args.speedup))
             for seed in range(seeds) for scale in scales for camera in cameras]
-    order = {t.key: i for i, t in enumerate(runs)}
-
-    def result(study_executor: str) -> dict[str, Any]:
-        trials = [finished[k] for k in sorted(finished, key=order.__getitem__)]
-        return {"command": command, "runs": len(trials), "wall_s": time.perf_counter() - t0, "seeds": seeds,
-                "modules": modules, "scales": scales, "cameras": cameras, "rows": aggregate(trials),
-                "trials": trials, "executor": study_executor}
-
-    fingerprint = {"bench": "trust", "seeds": seeds, "modules": modules, "scales": scales, "cameras": cameras,
-                   "speedup": args.speedup}
-    with open_study(args, out, fingerprint, "lab bench trust") as study:
-        def done(t: Trial, r: dict[str, Any]) -> None:
-            finished[t.key] = r
-            (out / "trust.json").write_text(json.dumps(result(study.describe()), indent=1))
-            if not args.json:
-                err = np.asarray(r["position_errors_m"], float)
-                ratio = err / np.asarray(r["sigmas_m"], float) if err.size else err
-                study.say(f"  {r['camera']:<8} x{r['scale']:g} seed {r['seed']}: {r['false_flags']} false flags of "
-                          f"{r['good']}, faults {r['faults_caught']}/{r['faults']}, error median "
-                          f"{np.median(err) * 1e3 if err.size else float('nan'):.2f} mm, |err|/1σ median "
-                          f"{np.median(ratio) if ratio.size else float('nan'):.2f}")
-
-        study.map(trust_trial, runs, on_result=done)
-        res = result(study.describe())
-        (out / "trust.json").write_text(json.dumps(res, indent=1))
-        study.finish()
-    if args.json:
-        print(json.dumps({k: v for k, v in res.items() if k != "trials"}, indent=1))
-    else:
-        print(to_markdown(res))
-    return 0
+    return run_trial_study(args, "trust", runs, trust_trial,
+                           {"seeds": seeds, "modules": modules, "scales": scales, "cameras": cameras},
+                           aggregate, to_markdown, _progress)
