@@ -90,9 +90,9 @@ class SlamConfig:
     # "corner-info": the IPPE pose with the corners' own information about it (the corner cost to
     # second order, in C++: ~100x faster batch solves; docs/sf_graphslam.md).
     observation: str = "pose"
-    # the detector's face-on corner accuracy, grown with obliquity.  A run takes the rig's
-    # [verification] corner_sigma_px; 0.02 px is 2.5x what the detector achieves on the simulated
-    # camera (a simulated run reports it against the truth as corner_rms_px: 0.008 px)
+    # the detector's face-on corner accuracy, grown with obliquity.  A run takes what its rig survey
+    # (or calibration file) measured, else the rig's [verification] corner_sigma_px, and measures
+    # it again from its own residuals (corner_noise)
     corner_sigma_px: float = 0.02
     # the tags' print scale error (relative, 1 sigma): with the corner model each tag gets a scale
     # variable with this prior, so a tag printed large is not read as a tag nearer the camera
