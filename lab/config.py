@@ -127,6 +127,11 @@ class SimConfig:
     lift: dict[str, float] = field(default_factory=dict)
     rig_error: rig_errors.RigError = field(default_factory=rig_errors.RigError)   # the true bench vs this file
     imaging: Imaging = field(default_factory=Imaging)   # [sim.camera] / [sim.tags] imaging keys (lab/imaging.py)
+    # what the simulated firmware does when its host goes (docs/protocols.md §1): stop a motion when
+    # no request came for watchdog_s (wall clock; 0 = no watchdog), and when the link that
+    # commanded it closes.  0 / false: an older firmware that finishes its move whatever happens.
+    watchdog_s: float = 1.0
+    stop_on_link_loss: bool = True
 
 
 @dataclass(frozen=True)
@@ -534,6 +539,10 @@ def _sim(t: _Table) -> SimConfig:
     speedup = t.number("speedup", default=1.0, positive=True, maximum=MAX_SPEEDUP)
     borg_n = t.integer("borg_n", default=3, minimum=2, maximum=8)
     pty = t.boolean("pty", default=True)
+    watchdog_s = t.number("watchdog_s", default=1.0, minimum=0.0, maximum=60.0, unit="s")
+    if 0 < watchdog_s < 0.3:   # shorter would bite a healthy host between two polls (sim_devices/watchdog.py)
+        raise t.error("watchdog_s", f"must be 0 (no watchdog) or at least 0.3 s, got {watchdog_s} s")
+    stop_on_link_loss = t.boolean("stop_on_link_loss", default=True)
     sections: dict[str, dict[str, Any]] = {}
     for dev, keys in _SIM_DEVICE_KEYS.items():
         sub = t.table(dev, required=False)
@@ -565,7 +574,7 @@ def _sim(t: _Table) -> SimConfig:
     if not sections["lift"]["min_mm"] < sections["lift"]["max_mm"]:
         raise t.error("lift.max_mm", f"must be greater than lift.min_mm ({sections['lift']['min_mm']} mm)")
     return SimConfig(seed, speedup, borg_n, pty, sections["turntable"], sections["stewart"], camera,
-                     sections["ipjr"], sections["lift"], rig_error, imaging)
+                     sections["ipjr"], sections["lift"], rig_error, imaging, watchdog_s, stop_on_link_loss)
 
 
 # --------------------------------------------------------------------------------------------

@@ -26,6 +26,7 @@ from sim_devices.lift import LiftSim
 from sim_devices.line_server import LineDevice, LineServer
 from sim_devices.stewart import StewartSim
 from sim_devices.turntable import TurntableSim
+from sim_devices.watchdog import Firmware
 from sim_devices.world import SimWorld
 
 
@@ -107,18 +108,20 @@ def _endpoint(name: str, url: str, ephemeral: bool, http: bool) -> tuple[str, in
 
 def start_sim_bench(rig: Rig | None = None, scenario: Scenario | None = None, *, speedup: float | None = None,
                     ephemeral_ports: bool = True, pty: bool = False, place_all: bool = False,
-                    borg_n: int | None = None) -> SimBench:
+                    borg_n: int | None = None, firmware: Firmware | None = None) -> SimBench:
     """Start a simulator for every device of a simulated rig (default: the packaged sim rig).
 
     ephemeral_ports: listen on free ports (tests, procedures) instead of the rig's own (lab sim).
     pty: also serve each serial device on a pseudo-terminal.  place_all: start with every BORG
     module placed (lab sim), instead of an empty turntable (a procedure places them).  borg_n: the
-    size of the BORG on the turntable (default: the rig's [sim] borg_n)."""
+    size of the BORG on the turntable (default: the rig's [sim] borg_n).  firmware: what the
+    devices do when their host goes (default: the rig's [sim] watchdog_s and stop_on_link_loss)."""
     rig = rig or load_rig(None)
     world = SimWorld(rig, scenario, speedup=speedup, borg_n=borg_n)
     bench = SimBench(rig, world)
     sim = rig.sim
     assert sim is not None
+    firmware = firmware or Firmware(sim.watchdog_s, sim.stop_on_link_loss)
     try:
         for name, kind, url in rig.devices():
             http = url.startswith("http")
@@ -143,16 +146,19 @@ def start_sim_bench(rig: Rig | None = None, scenario: Scenario | None = None, *,
             if line_device is not None:
                 if http:
                     raise UserError(f"simulated device {name}: a {kind} speaks the serial protocol; use a socket:// URL")
-                server: LineServer | HttpDeviceServer = LineServer(line_device, faults, host, port, pty=pty).start()
+                server: LineServer | HttpDeviceServer = LineServer(line_device, faults, host, port, pty=pty,
+                                                                   firmware=firmware).start()
                 bench.devices[name] = line_device
                 bench.urls[name] = server.url
                 if server.pty_path:
                     bench.pty_paths[name] = server.pty_path
             elif kind == "ipjr":
                 act = world.ipjrs[name]
-                # HTTP has no standing link to lose: a dropped request leaves the actuator moving.
+                # HTTP has no standing link to lose: a dropped request leaves the actuator moving,
+                # until the watchdog sees the host silent
                 server = HttpDeviceServer(name, ipjr_routes(act), faults, is_moving=act.moving,
-                                          motion_paths=frozenset({"/step"}), host=host, port=port).start()
+                                          motion_paths=frozenset({"/step"}), host=host, port=port, stop=act.stop,
+                                          firmware=firmware).start()
                 bench.devices[name] = act
                 bench.urls[name] = server.url
             elif kind == "camera":

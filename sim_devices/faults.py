@@ -5,7 +5,9 @@ A fault is armed on one device and fires on the commands that device receives:
 - `garbled`:    the request is executed but its reply is replaced by random non-ASCII bytes;
 - `disconnect`: on a command that arrives while the device is moving (a dropped connection mid-move),
                 the server closes the connection without replying.  A serial device stops (link
-                loss is an emergency stop); an HTTP device keeps moving (HTTP has no standing link);
+                loss is an emergency stop, unless its firmware lacks it: sim_devices/watchdog.py);
+                an HTTP device keeps moving (HTTP has no standing link) until its watchdog sees
+                the host silent;
 - `stuck`:      motion commands are accepted but the actuator does not move (it stays "moving");
 - `http_500`:   (HTTP devices) the request is not executed and gets HTTP 500.
 

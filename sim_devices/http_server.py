@@ -3,7 +3,11 @@
 
 A route is `path -> handler(query: dict[str, str], stuck: bool) -> (status, content_type, body,
 headers)` (`stuck`: an injected stuck-actuator fault applies to this request); a handler
-raises `Refuse` for a protocol error, which becomes the JSON error of docs/protocols.md §5."""
+raises `Refuse` for a protocol error, which becomes the JSON error of docs/protocols.md §5.
+
+HTTP has no standing link to lose, so a device that moves (`stop` given) has the watchdog of
+sim_devices/watchdog.py: every request feeds it, and a motion during which no request arrives for
+longer than `Firmware.watchdog_s` is stopped."""
 
 from __future__ import annotations
 
@@ -16,6 +20,7 @@ from typing import Any, Callable
 
 from sim_devices.faults import FaultInjector
 from sim_devices.line_server import E_INTERNAL, E_SYNTAX, E_UNKNOWN, Refuse
+from sim_devices.watchdog import Firmware, Watchdog
 
 Reply = tuple[int, str, bytes, dict[str, str]]
 Route = Callable[[dict[str, str], bool], Reply]   # (query, stuck) -> reply
@@ -87,11 +92,14 @@ class _Server(ThreadingHTTPServer):
 class HttpDeviceServer:
     def __init__(self, name: str, routes: dict[str, Route], faults: FaultInjector, *,
                  is_moving: Callable[[], bool] = lambda: False, motion_paths: frozenset[str] = frozenset(),
-                 on_link_lost: Callable[[], None] = lambda: None, host: str = "127.0.0.1", port: int = 0) -> None:
+                 on_link_lost: Callable[[], None] = lambda: None, host: str = "127.0.0.1", port: int = 0,
+                 stop: Callable[[], None] | None = None, firmware: Firmware = Firmware()) -> None:
         self.name = name
         self.routes = routes
         self.faults = faults
         self._stop = threading.Event()
+        self.watchdog = Watchdog(name, firmware.watchdog_s if stop is not None else 0.0, is_moving,
+                                 stop or (lambda: None))
         outer = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -103,6 +111,7 @@ class HttpDeviceServer:
                 pass
 
             def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
+                outer.watchdog.feed()          # the host is there, whatever it asks
                 if len(self.path) > MAX_TARGET:
                     return self._send(error_reply(E_SYNTAX, f"request target longer than {MAX_TARGET} bytes"))
                 parts = urllib.parse.urlsplit(self.path)
@@ -159,6 +168,7 @@ class HttpDeviceServer:
         return f"http://{self.host}:{self.port}"
 
     def start(self) -> HttpDeviceServer:
+        self.watchdog.start()
         self._thread = threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.05},
                                         name=f"{self.name}-http", daemon=True)
         self._thread.start()
@@ -166,6 +176,7 @@ class HttpDeviceServer:
 
     def stop(self) -> None:
         self._stop.set()
+        self.watchdog.stop()
         self._httpd.shutdown()
         self._httpd.server_close()
         if self._thread:

@@ -7,11 +7,21 @@ registers its commands.  `LineServer` moves bytes: it splits lines, applies inje
 and writes replies.  Several TCP clients may connect at once (unlike a real serial port); they
 share the one device.
 
-Known limitations: a pseudo-terminal cannot be unplugged, so on a pty the `disconnect` fault stops
-the device and swallows the request (like `timeout`) instead of closing the link."""
+Host loss (docs/protocols.md §1, sim_devices/watchdog.py): a motion belongs to the link that
+commanded it (a TCP connection, or the pty).  When that link closes — the client closed or reset
+its socket, or every holder of the pty closed it (the kernel reports a hang-up) — the device stops
+at once; while the device moves, that link's requests feed the watchdog, which stops the device if
+they cease for longer than `Firmware.watchdog_s`.  Other clients (a person at a terminal checking
+`STATUS?`) neither keep a motion alive nor stop it by leaving.  `Firmware` can take either
+behaviour away (an older firmware).
+
+Known limitations: a pseudo-terminal cannot be unplugged by the server, so on a pty the `disconnect`
+fault stops the device (if its firmware stops on link loss) and swallows the request (like
+`timeout`) instead of closing the link."""
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import select
@@ -21,6 +31,7 @@ import tty
 from typing import Callable
 
 from sim_devices.faults import FaultInjector
+from sim_devices.watchdog import Firmware, Watchdog
 
 MAX_LINE = 128
 MAX_CLIENTS = 8          # TCP clients at once (a serial port has one); more are closed at once
@@ -113,13 +124,19 @@ class LineDevice:
 
 
 DISCONNECT = object()
+PTY = "pty"          # the pseudo-terminal's link (TCP links are their sockets)
 
 
 class LineServer:
     def __init__(self, device: LineDevice, faults: FaultInjector, host: str = "127.0.0.1", port: int = 0,
-                 pty: bool = False) -> None:
+                 pty: bool = False, firmware: Firmware = Firmware()) -> None:
         self.device = device
         self.faults = faults
+        self.firmware = firmware
+        self.watchdog = Watchdog(device.name, firmware.watchdog_s, self._moving, self._emergency_stop)
+        self._host: object | None = None     # the link that commanded the motion under way
+        self._host_lock = threading.Lock()
+        self.link_losses = 0                 # motions stopped because their link closed (tests)
         self._stop = threading.Event()
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -139,14 +156,18 @@ class LineServer:
         if pty:
             master, slave = os.openpty()
             tty.setraw(slave)          # no echo, no line editing: bytes as a serial port delivers them
-            self._pty_fds = (master, slave)
             self.pty_path = os.ttyname(slave)
+            # the server keeps only the master: with no slave descriptor of its own, the kernel
+            # reports a hang-up on the master when the host closes the port (or dies)
+            os.close(slave)
+            self._pty_fds = (master,)
 
     @property
     def url(self) -> str:
         return f"socket://{self.host}:{self.port}"
 
     def start(self) -> LineServer:
+        self.watchdog.start()
         self._spawn(self._accept_loop, f"{self.device.name}-accept")
         if self._pty_fds:
             self._spawn(self._pty_loop, f"{self.device.name}-pty")
@@ -159,6 +180,7 @@ class LineServer:
 
     def stop(self) -> None:
         self._stop.set()
+        self.watchdog.stop()
         try:
             self._sock.close()
         except OSError:
@@ -180,9 +202,43 @@ class LineServer:
         for c in list(self._clients):
             _close(c)
 
+    # -- host loss -------------------------------------------------------------------------------
+    def _moving(self) -> bool:
+        return self.device.is_moving()
+
+    def _emergency_stop(self) -> None:
+        with self._host_lock:
+            self._host = None
+        self.device.link_lost()
+
+    def _heard(self, link: object) -> None:
+        """A request arrived on `link`: the motion's link (or any, with no motion owned) feeds the
+        watchdog."""
+        with self._host_lock:
+            mine = self._host is None or self._host is link
+        if mine:
+            self.watchdog.feed()
+
+    def _commanded(self, link: object) -> None:
+        """`link` started a motion (the device accepted it): the motion is that link's."""
+        with self._host_lock:
+            self._host = link
+        self.watchdog.feed()
+
+    def _link_closed(self, link: object) -> None:
+        """`link` closed: if it commanded the motion under way, the host is gone: stop."""
+        with self._host_lock:
+            if self._host is not link:
+                return
+            self._host = None
+        if self.firmware.stop_on_link_loss and self.device.is_moving():
+            self.device.link_lost()
+            self.link_losses += 1
+
     # -- request handling, shared by socket and pty ---------------------------------------------
-    def respond(self, raw: bytes) -> bytes | None | object:
+    def respond(self, raw: bytes, link: object = None) -> bytes | None | object:
         """One received line (terminator stripped) -> reply bytes, None (no reply), or DISCONNECT."""
+        self._heard(link)
         if len(raw) + 1 > MAX_LINE:
             return f"ERR {E_TOO_LONG} request longer than {MAX_LINE} bytes\n".encode()
         text = raw.decode("ascii", errors="replace").rstrip("\r")
@@ -197,9 +253,13 @@ class LineServer:
         if fault == "timeout":
             return None
         if fault == "disconnect":
-            self.device.link_lost()
+            if self.firmware.stop_on_link_loss:
+                self.device.link_lost()
             return DISCONNECT
-        reply = (tag + self.device.handle(text, stuck=(fault == "stuck")) + "\n").encode("ascii", errors="replace")
+        answer = self.device.handle(text, stuck=(fault == "stuck"))
+        if motion and answer.startswith("OK"):
+            self._commanded(link)
+        reply = (tag + answer + "\n").encode("ascii", errors="replace")
         if fault == "garbled":
             return self.faults.garble(reply)
         return reply
@@ -223,10 +283,11 @@ class LineServer:
             else:
                 out.append(line)
 
-    def _reply_for(self, line: bytes | None) -> bytes | None | object:
+    def _reply_for(self, line: bytes | None, link: object) -> bytes | None | object:
         if line is None:
+            self._heard(link)
             return f"ERR {E_TOO_LONG} request longer than {MAX_LINE} bytes\n".encode()
-        return self.respond(line)
+        return self.respond(line, link)
 
     def _accept_loop(self) -> None:
         while not self._stop.is_set():
@@ -257,7 +318,7 @@ class LineServer:
                 if not chunk:
                     break
                 for line in self._lines(buf, chunk, overflow):
-                    reply = self._reply_for(line)
+                    reply = self._reply_for(line, conn)
                     if reply is DISCONNECT:
                         return
                     if reply:
@@ -267,27 +328,52 @@ class LineServer:
         finally:
             self._clients.discard(conn)
             _close(conn)
+            self._link_closed(conn)
 
     def _pty_loop(self) -> None:
+        """Serve the pty.  With no host holding the port open the master reports a hang-up
+        (POLLHUP) at every poll; a poll that times out means a host has it open."""
         assert self._pty_fds is not None
         master = self._pty_fds[0]
+        poller = select.poll()
+        poller.register(master, select.POLLIN)
         buf, overflow = bytearray(), [False]
+        held = False          # a host has the port open
         while not self._stop.is_set():
             try:
-                ready, _, _ = select.select([master], [], [], 0.05)
-                if not ready:
-                    continue
-                chunk = os.read(master, 4096)
+                events = poller.poll(50)
             except (OSError, ValueError):
                 return
-            for line in self._lines(buf, chunk, overflow):
-                reply = self._reply_for(line)
-                if reply is DISCONNECT or not reply:
-                    continue
+            if not events:
+                held = True
+                continue
+            ev = events[0][1]
+            if ev & select.POLLNVAL:
+                return
+            chunk = b""
+            if ev & select.POLLIN:
                 try:
-                    os.write(master, reply)  # type: ignore[arg-type]
-                except OSError:
-                    return
+                    chunk = os.read(master, 4096)
+                except OSError as exc:
+                    if exc.errno != errno.EIO:      # EIO: the host side is closed
+                        return
+            if chunk:
+                held = True
+                for line in self._lines(buf, chunk, overflow):
+                    reply = self._reply_for(line, PTY)
+                    if reply is DISCONNECT or not reply:
+                        continue
+                    try:
+                        os.write(master, reply)  # type: ignore[arg-type]
+                    except OSError:
+                        pass   # the host closed the port meanwhile: the hang-up is handled below
+                continue
+            if ev & (select.POLLHUP | select.POLLERR):
+                if held:
+                    held = False
+                    buf.clear()
+                    self._link_closed(PTY)
+                self._stop.wait(0.02)
 
 
 def _close(conn: socket.socket) -> None:
