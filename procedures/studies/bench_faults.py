@@ -15,7 +15,10 @@ were tried, how many ended as expected, and names every one that did not.  Secti
 - protocol:  abuse of the simulated servers over raw sockets and HTTP: refused, the device does
              not move, the server still answers;
 - sharing:   a second run against a bench another process owns, and two runs on one --out: the
-             second is refused naming the device or directory and its holder; the first is unharmed.
+             second is refused naming the device or directory and its holder; the first is unharmed;
+- links:     one owner per device whatever its spelling, environment or user; devices that stop when
+             their host goes (or finish, on an older firmware), and `lab resume` after either
+             (procedures/studies/bench_faults_links.py).
 """
 
 from __future__ import annotations
@@ -38,6 +41,8 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
+
+from procedures.studies.bench_faults_links import link_cases
 
 LAB = [sys.executable, "-m", "lab"]
 ROOT = Path(__file__).resolve().parents[2]
@@ -764,7 +769,7 @@ def sharing_cases(work: Path, quick: bool) -> list[Case]:
 # ---- the command ----------------------------------------------------------------------------
 
 
-SECTIONS = ("devices", "kill", "signals", "inputs", "protocol", "sharing")
+SECTIONS = ("devices", "kill", "signals", "inputs", "protocol", "sharing", "links")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -790,6 +795,7 @@ def campaign(quick: bool, only: list[str] | None = None, work: Path | None = Non
         "inputs": lambda: input_cases(work, quick),
         "protocol": lambda: protocol_cases(quick),
         "sharing": lambda: sharing_cases(work, quick),
+        "links": lambda: [Case(*spec) for spec in link_cases(work, quick)],
     }
     try:
         for section in SECTIONS:
