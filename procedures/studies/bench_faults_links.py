@@ -250,7 +250,11 @@ def _exclusive_open_case(work: Path) -> CaseSpec:
 def _as_user(uid: int, act: Callable[[], str], hold_s: float = 0.0) -> tuple[int, Callable[[], str]]:
     """Fork a process that becomes user `uid` and runs `act` (it returns "ok ..." or a problem);
     with hold_s it then stays alive that long (holding what it took).  Returns (pid, result):
-    result() waits for the child's first report."""
+    result() waits for the child's first report.  This process must hold no device claim: a forked
+    child would share its lock instead of asking for one."""
+    from drivers.ownership import held_keys
+
+    assert not held_keys(), f"fork with device claims held: {held_keys()}"
     r, w = os.pipe()
     pid = os.fork()
     if pid == 0:   # the child: no Python objects of the parent's threads are touched
@@ -535,14 +539,15 @@ def _sent(path: Path, device_url: str) -> list[str]:
 class Reference:
     """One uninterrupted BORG run against a fresh `lab sim`, shared by the resume cases."""
 
-    def __init__(self, work: Path) -> None:
+    def __init__(self, work: Path, speedup: float) -> None:
         self.work = work
+        self.speedup = speedup
         self._found: dict | None = None
 
     def findings(self) -> dict:
         if self._found is None:
             d = self.work / "links-reference"
-            sim = _Sim(d, old=False, speedup=SPEEDUP)
+            sim = _Sim(d, old=False, speedup=self.speedup)
             try:
                 r = _lab(BORG + ["--rig", str(sim.hw_rig), "--out", str(d / "run")])
             finally:
@@ -556,14 +561,14 @@ class Reference:
 SPEEDUP = 5.0        # lab sim's: a turntable move of tens of degrees lasts a fraction of a second
 
 
-def _resume_case(work: Path, ref: Reference, old: bool) -> CaseSpec:
+def resume_case(work: Path, ref: Reference, old: bool) -> CaseSpec:
     kind = "older firmware: finishes the move" if old else "protocol firmware: stops half-way"
     name = f"links/resume/run SIGKILLed while the turntable turns, {kind}"
 
     def check() -> str:
         d = work / ("resume-old" if old else "resume-new")
         shutil.rmtree(d, ignore_errors=True)
-        sim = _Sim(d, old, SPEEDUP)
+        sim = _Sim(d, old, ref.speedup)
         out = d / "run"
         try:
             run = subprocess.Popen(LAB + BORG + ["--rig", str(sim.hw_rig), "--out", str(out)],
@@ -627,9 +632,9 @@ def _resume_case(work: Path, ref: Reference, old: bool) -> CaseSpec:
                     "the move, completes, every step once, findings of the uninterrupted run", check)
 
 
-def resume_cases(work: Path, quick: bool) -> list[CaseSpec]:
-    ref = Reference(work)
-    return [_resume_case(work, ref, old=False), _resume_case(work, ref, old=True)]
+def resume_cases(work: Path, quick: bool, speedup: float = SPEEDUP) -> list[CaseSpec]:
+    ref = Reference(work, speedup)
+    return [resume_case(work, ref, old=False), resume_case(work, ref, old=True)]
 
 
 def link_cases(work: Path, quick: bool) -> list[CaseSpec]:
