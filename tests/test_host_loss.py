@@ -198,3 +198,23 @@ def test_the_rig_file_chooses_the_firmware(tmp_path):
     assert load_rig(None).sim.watchdog_s == WATCHDOG_S and load_rig(None).sim.stop_on_link_loss
     with pytest.raises(RigError, match="watchdog_s: must be 0 .* at least 0.3 s"):
         rig("watchdog_s = 0.1\n")
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """An uninterrupted BORG run against a `lab sim` in another process (made once, on demand)."""
+    from procedures.studies.bench_faults_links import Reference
+
+    return Reference(tmp_path_factory.mktemp("reference"), speedup=10)
+
+
+@pytest.mark.parametrize("old", [False, True], ids=["device stops half-way", "older firmware finishes the move"])
+def test_resume_after_a_run_killed_while_the_turntable_turns(tmp_path, uninterrupted, old):
+    """`lab run borg` against `lab sim` (another process, as a real bench is), SIGKILLed while the
+    turntable turns: the turntable must have stopped half-way (or finished, on an older firmware),
+    and `lab resume` must re-command the interrupted move and find what the uninterrupted run
+    found (the checks are the bench case's, procedures/studies/bench_faults_links.py)."""
+    from procedures.studies.bench_faults_links import resume_case
+
+    case = resume_case(tmp_path, uninterrupted, old=old)
+    assert case.check() == ""
