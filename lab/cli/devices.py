@@ -92,8 +92,12 @@ def _sim(args: argparse.Namespace) -> int:
     old = signal.signal(signal.SIGTERM, on_signal)
     try:
         world = bench.world
+        sim = rig.sim
+        stops = (["when its link closes"] if sim.stop_on_link_loss else []) + (
+            [f"after {sim.watchdog_s:g} s without a request (watchdog)"] if sim.watchdog_s else [])
+        host_loss = f"; a move stops {' or '.join(stops)}" if stops else "; a move goes on when its host goes"
         print(f"lab sim: rig {rig.name} ({rig.source}); seed {world.seed}; devices {world.speedup:g}x faster than real"
-              + (f"; scenario {scenario.source}" if scenario else ""))
+              + host_loss + (f"; scenario {scenario.source}" if scenario else ""))
         width = max(len(n) for n, _, _ in rig.devices())
         for name, kind, _ in rig.devices():
             pty = f"   pty {bench.pty_paths[name]}" if name in bench.pty_paths else ""
