@@ -29,6 +29,7 @@ import json
 import os
 import stat
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -87,24 +88,26 @@ def device_lock_dir() -> Path:
     """The machine-wide directory of device locks (created mode 1777 if missing); a one-line
     UserError if it cannot be used."""
     d = RUN_LOCK / "lab" if _sticky_world_writable(RUN_LOCK) else FALLBACK_LOCK_DIR
-    try:
+    for _ in range(50):
         try:
-            os.mkdir(d, 0o1777)
-            os.chmod(d, 0o1777)      # mkdir's mode is cut by the umask
-        except FileExistsError:
-            pass
-        st = os.lstat(d)
-    except OSError as exc:
-        raise UserError(f"device lock directory {d}: cannot create it: {exc.strerror or exc}") from None
-    if not stat.S_ISDIR(st.st_mode):
-        raise UserError(f"device lock directory {d} is not a directory (a symlink or file is in its place); "
-                        f"remove it so that every run shares one lock directory")
-    if stat.S_IMODE(st.st_mode) != 0o1777 and st.st_uid == os.getuid():
-        os.chmod(d, 0o1777)      # ours, with a narrowed mode (an older lab made it 0700): open it to all users
-    elif not os.access(d, os.W_OK | os.X_OK):
-        raise UserError(f"device lock directory {d} is not writable by this user (mode "
-                        f"{stat.S_IMODE(st.st_mode):o}, owner uid {st.st_uid}); its owner should `chmod 1777 {d}`")
-    return d
+            try:
+                os.mkdir(d, 0o1777)
+                os.chmod(d, 0o1777)      # mkdir's mode is cut by the umask
+            except FileExistsError:
+                pass
+            st = os.lstat(d)
+        except OSError as exc:
+            raise UserError(f"device lock directory {d}: cannot create it: {exc.strerror or exc}") from None
+        if not stat.S_ISDIR(st.st_mode):
+            raise UserError(f"device lock directory {d} is not a directory (a symlink or file is in its place); "
+                            f"remove it so that every run shares one lock directory")
+        if stat.S_IMODE(st.st_mode) == 0o1777 or os.access(d, os.W_OK | os.X_OK):
+            if stat.S_IMODE(st.st_mode) != 0o1777 and st.st_uid == os.getuid():
+                os.chmod(d, 0o1777)  # ours but narrowed (its creator died between mkdir and chmod)
+            return d
+        time.sleep(0.01)   # another user's process may be between its mkdir and its chmod
+    raise UserError(f"device lock directory {d} is not writable by this user (mode {stat.S_IMODE(st.st_mode):o}, "
+                    f"owner uid {st.st_uid}); its owner should `chmod 1777 {d}`")
 
 
 def _sticky_world_writable(d: Path) -> bool:
@@ -137,8 +140,8 @@ class FileLock:
         try:
             fd = os.open(self.path, os.O_RDWR | flags, 0o666)
         except PermissionError:
-            # another user's file we may not write (an older lab made them 0600): flock works on a
-            # read-only descriptor too; only our note cannot be written
+            # another user's file we may not write (its mode narrowed by hand, or its creator died
+            # before its fchmod): flock works on a read-only descriptor too; only our note is lost
             fd = os.open(self.path, os.O_RDONLY | flags, 0o666)
         try:
             if os.fstat(fd).st_uid == os.getuid():
