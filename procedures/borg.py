@@ -135,8 +135,12 @@ class BorgProcedure:
         cal_file = calibration or rig.calibration.file
         if cal_file is not None:
             from lab.rig_calibration import load_rig_calibration
+            from lab.rig_calibration_check import check_for_rig
 
             self.rig_calibration = load_rig_calibration(cal_file)
+            # its meaning, before anything moves: a file for another bench or structure, or values
+            # no survey of this one could give, would otherwise be blamed on the structure
+            check_for_rig(self.rig_calibration, rig, self.intrinsics, self.model, str(cal_file))
             self._take_measured(estimator_config, self.rig_calibration.corner_sigma_px,
                                 self.rig_calibration.tag_scale_sigma)
         self.rig_survey = (self.rig_calibration is None) if rig_survey is None else bool(rig_survey)
