@@ -96,11 +96,13 @@ def check_speedup(speedup: float | None, rig: Rig | None = None) -> None:
 
     if speedup is not None and not (math.isfinite(speedup) and 0 < speedup <= MAX_SPEEDUP):
         raise UserError(f"--speedup must be a number in (0, {MAX_SPEEDUP:g}], got {speedup!r}")
-    if speedup is None or rig is None or rig.sim is None:
+    if rig is None or rig.sim is None:
         return
+    # the command's --speedup, else the rig file's own [sim] speedup: either can be too slow
+    value, name = (speedup, "--speedup") if speedup is not None else (rig.sim.speedup, f"rig {rig.source}: [sim] speedup")
     slowest = min_speedup(rig)
-    if speedup < slowest.factor:
-        raise UserError(f"--speedup {speedup:g}: {slowest.why}; the slowest this rig's simulated devices allow is "
+    if value < slowest.factor:
+        raise UserError(f"{name} {value:g}: {slowest.why}; the slowest this rig's simulated devices allow is "
                         f"{slowest.factor:.3g}")
 
 

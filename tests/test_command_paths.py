@@ -95,3 +95,20 @@ def test_path_checks(tmp_path, afile):
     for bad in (afile, afile / "run", Path("/proc/run")):
         with pytest.raises(UserError):
             check_output_dir(bad, "--run-dir")
+
+
+def test_a_rig_whose_own_speedup_is_too_slow_is_refused_naming_its_key(tmp_path):
+    import shutil
+
+    from lab.config import default_rig_path
+
+    src = default_rig_path()
+    shutil.copy(src.parent / "sim_camera.json", tmp_path / "sim_camera.json")
+    rig = tmp_path / "slow.toml"
+    rig.write_text(src.read_text().replace("speedup = 10.0", "speedup = 0.001", 1))
+    out = tmp_path / "run"
+    rc, _, err, _ = _run("run", "truss", "tetrahelix:6", "--auto", "--rig", str(rig), "--out", str(out))
+    assert rc == 2 and "[sim] speedup 0.001" in err and str(rig) in err, err
+    assert not out.exists()
+    rc, _, err, _ = _run("sim", "--rig", str(rig), "--speedup", "1e-9")
+    assert rc == 2 and "--speedup 1e-09" in err, err
