@@ -531,6 +531,8 @@ _SIM_MAXIMA = {"speed_deg_s": 720.0, "speed_mm_s": 1000.0, "settle_s": 60.0, "mi
                "stroke_margin_mm": 100.0, "volts_noise_v": 1.0, "step_scale_sigma": 0.5, "move_sigma_m": 0.01,
                "calibration_sigma_v": 1.0, "start_extension_m": 1.0}
 MAX_SPEEDUP = 1000.0
+# the same bounds, for what derives from them (the slowest --speedup a rig's devices allow)
+SIM_DEVICE_KEYS, SIM_MAXIMA = _SIM_DEVICE_KEYS, _SIM_MAXIMA
 _SIM_CAMERA_KEYS = {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "dist", *RIG_CAMERA_KEYS}
 
 

@@ -32,6 +32,7 @@ import numpy as np
 
 from lab.errors import UserError
 from lab.geometry import Pose3, from_xyzrpy, to_xyzrpy
+from lab.rig_calibration_check import POSE_UNITS, check_covariance
 
 FORMAT = "lab.rig_calibration/1"
 POSES = ("platform_T_camera", "world_T_base", "world_T_axis")
@@ -124,6 +125,14 @@ def joint_blocks(turntable_tags: Any) -> tuple[tuple[str | int, int], ...]:
             *((int(t), 6) for t in sorted(turntable_tags)))
 
 
+def joint_units(turntable_tags: Any) -> tuple[str, ...]:
+    """The unit of each row of the joint covariance (lab.rig_calibration_check.SIGMA_RANGE's keys)."""
+    units: list[str] = []
+    for name, _ in joint_blocks(turntable_tags):
+        units += ["px"] * 5 if name == "K" else ["1"] * 2 if name == "distortion" else list(POSE_UNITS)
+    return tuple(units)
+
+
 def _pose(d: Any, where: str, src: str) -> tuple[Pose3, np.ndarray | None]:
     try:
         xyz = [float(v) for v in d["xyz_m"]]
@@ -137,6 +146,8 @@ def _pose(d: Any, where: str, src: str) -> tuple[Pose3, np.ndarray | None]:
                 raise ValueError
     except (KeyError, TypeError, ValueError):
         raise UserError(f"rig calibration {src}: {where}: expected {{xyz_m: [3], rpy_deg: [3], covariance: 6x6}}") from None
+    if cov is not None:
+        check_covariance(cov, POSE_UNITS, f"{where}.covariance", src)
     return from_xyzrpy([*xyz, *rpy]), cov
 
 
@@ -172,6 +183,12 @@ def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
             raise ValueError
     except (KeyError, TypeError, ValueError):
         raise UserError(f"rig calibration {p}: camera: expected fx_px, fy_px, cx_px, cy_px and a 4x4 covariance") from None
+    for key, value in (("fx_px", K[0, 0]), ("fy_px", K[1, 1]), ("cx_px", K[0, 2]), ("cy_px", K[1, 2])):
+        # a focal length is positive; a principal point is on the image, whose pixels count from 0
+        if not (value > 0 if key.startswith("f") else value >= 0):
+            raise UserError(f"rig calibration {p}: camera.{key}: {value:g} px is not physically possible "
+                            f"({'a focal length is positive' if key.startswith('f') else 'pixels count from 0'})")
+    check_covariance(covs["K"], ("px",) * 4, "camera.covariance", p)
     tags, tag_covs = {}, {}
     for k, v in (data.get("turntable_tags") or {}).items():
         try:
@@ -200,6 +217,12 @@ def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
         except (TypeError, ValueError):
             raise UserError(f"rig calibration {p}: joint_covariance: expected a finite {n}x{n} matrix "
                             f"(the rig poses, the intrinsics and {len(tags)} turntable tags)") from None
+        check_covariance(joint, joint_units(tags), "joint_covariance", p)
+    rms, views = data.get("rms_px", float("nan")), data.get("views", 0)
+    if isinstance(rms, bool) or not isinstance(rms, (int, float, type(None))) or (rms is not None and rms < 0):
+        raise UserError(f"rig calibration {p}: rms_px: expected a non-negative number, got {rms!r}")
+    if isinstance(views, bool) or not isinstance(views, int) or views < 0:
+        raise UserError(f"rig calibration {p}: views: expected a count of views, got {views!r}")
     return RigCalibration(poses["platform_T_camera"], poses["world_T_base"], poses["world_T_axis"], K, covs, tags,
-                          tag_covs, float(data.get("rms_px", float("nan"))), int(data.get("views", 0)),
+                          tag_covs, float("nan") if rms is None else float(rms), views,
                           str(data.get("rig", "")), str(data.get("created", "")), joint, corner_sigma, dk, tag_scale)

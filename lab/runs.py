@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import math
 import os
+import stat
 import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -111,7 +113,8 @@ def read_run(run_dir: Path, root: Path | None = None) -> RunEntry:
     except Exception:   # no footer (killed) or no index: scan the file front to back below
         start = stop = None
     try:
-        records = iter_messages(run_dir / RUN_FILE, (topics.RUN_START, topics.RUN_STOP, topics.RUN_STEP), scan)
+        records = iter_messages(run_dir / RUN_FILE, (topics.RUN_START, topics.RUN_STOP, topics.RUN_STEP), scan,
+                                max_bytes=SCAN_BUDGET_BYTES)
         for r in (records if stop is None else ()):
             last_ns = max(last_ns, r.log_time_ns)
             if r.topic == topics.RUN_START:
@@ -143,7 +146,8 @@ def read_run(run_dir: Path, root: Path | None = None) -> RunEntry:
     else:
         from lab.locks import read_holder
 
-        holder = read_holder(run_dir / ".lock")   # a run still going holds its directory's lock
+        # a run still going holds its directory's lock (a .lock that is no file holds nothing)
+        holder = read_holder(run_dir / ".lock") if _regular(run_dir / ".lock") else None
         if holder:
             entry.result = "running"
             entry.reason = f"pid {holder.get('pid', '?')} holds the run directory"
@@ -156,11 +160,24 @@ def read_run(run_dir: Path, root: Path | None = None) -> RunEntry:
             entry.reason = f"no stop record ({scan.stop_reason or 'cut short'}); `lab recover` or `lab resume` it"
             if start is not None and last_ns:
                 entry.duration_s = max(0.0, last_ns * 1e-9 - entry.start_s)
+        if scan.budget_reached:
+            # the steps past the budget: the checkpoint counts them (written after every step)
+            ckpt = _json_file(run_dir / "checkpoint.json")
+            done = ckpt.get("steps_completed") if isinstance(ckpt, dict) else None
+            if isinstance(done, int) and not isinstance(done, bool) and done >= 0:
+                entry.steps_completed = max(entry.steps_completed, done)
     summary = _json_file(run_dir / "summary.json")
+    if summary_problem(summary) is not None:
+        summary = None        # a damaged summary counts nothing (`lab runs show` says what is wrong)
     entry.counts = _counts(summary)
     if isinstance(summary, dict) and entry.procedure == "" and isinstance(summary.get("structure"), str):
         entry.structure = summary["structure"]
     return entry
+
+
+# A killed run's file is scanned front to back for its steps; past this much (a long run's images)
+# the checkpoint says how many steps were done, so listing many runs stays quick whatever their size
+SCAN_BUDGET_BYTES = 64 * 2 ** 20
 
 
 def _start_stop_indexed(path: Path) -> tuple[Any, Any]:
@@ -184,7 +201,85 @@ def _start_stop_indexed(path: Path) -> tuple[Any, Any]:
     return start, stop
 
 
+VERDICTS = ("ok", "flagged", "uncertain", "unverified")
+# the numbers a summary's tables print: each a finite number or null
+_MODULE_NUMBERS = ("deviation_m", "deviation_rad", "sigma_position_m", "position_error_m", "rotation_error_rad",
+                   "tolerance_m", "tolerance_rad")
+_NODE_NUMBERS = ("error_m", "estimate_error_m")
+
+
+@dataclass(frozen=True)
+class SummaryFile:
+    """A run's summary.json as read: its content, or what is wrong with it (`problem`: "missing",
+    else the key and value that make it unusable)."""
+
+    summary: dict[str, Any] | None
+    problem: str = ""
+
+
+def read_summary_file(run_dir: Path) -> SummaryFile:
+    """summary.json, checked like any input: the tables `lab runs show` prints from it need each
+    row's name and verdict (or node id) and numbers where numbers go."""
+    path = run_dir / "summary.json"
+    if path.exists() and not _regular(path):
+        return SummaryFile(None, "not a regular file")
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        return SummaryFile(None, "missing")
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        return SummaryFile(None, f"not a readable JSON file ({type(exc).__name__}: {exc})")
+    problem = summary_problem(data)
+    return SummaryFile(data if problem is None else None, problem or "")
+
+
+def summary_problem(data: Any) -> str | None:
+    """What makes a summary unusable for its tables, naming the key; None if nothing."""
+    def number(v: Any) -> bool:
+        return v is None or (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v))
+
+    if not isinstance(data, dict):
+        return f"expected a JSON object, got {type(data).__name__}"
+    mods = data.get("modules")
+    if mods is not None:
+        if not isinstance(mods, list):
+            return f"modules: expected a list, got {type(mods).__name__}"
+        for k, m in enumerate(mods):
+            if not isinstance(m, dict):
+                return f"modules[{k}]: expected an object, got {m!r:.40}"
+            if "name" not in m:
+                return f"modules[{k}].name: missing"
+            if not isinstance(m["name"], str) or not m["name"]:
+                return f"modules[{k}].name: expected a module name, got {m['name']!r:.40}"
+            if m.get("verdict") not in VERDICTS:
+                return f"modules[{k}].verdict: expected one of {', '.join(VERDICTS)}, got {m.get('verdict')!r:.40}"
+            for key in _MODULE_NUMBERS:
+                if not number(m.get(key)):
+                    return f"modules[{k}].{key}: expected a finite number or null, got {m[key]!r:.40}"
+            if not isinstance(m.get("reason", ""), str):
+                return f"modules[{k}].reason: expected text, got {m['reason']!r:.40}"
+    tags = data.get("rejected_tags")
+    if tags is not None and not (isinstance(tags, list) and all(isinstance(t, int) and not isinstance(t, bool)
+                                                                for t in tags)):
+        return f"rejected_tags: expected a list of tag ids, got {tags!r:.40}"
+    nodes = data.get("nodes")
+    if nodes is not None:
+        if not isinstance(nodes, list):
+            return f"nodes: expected a list, got {type(nodes).__name__}"
+        for k, n in enumerate(nodes):
+            if not isinstance(n, dict) or "id" not in n:
+                return f"nodes[{k}].id: missing"
+            for key in _NODE_NUMBERS:
+                if not number(n.get(key)):
+                    return f"nodes[{k}].{key}: expected a finite number or null, got {n[key]!r:.40}"
+        if not number(data.get("rms_node_error_m")):
+            return f"rms_node_error_m: expected a finite number or null, got {data['rms_node_error_m']!r:.40}"
+    return None
+
+
 def _json_file(path: Path) -> Any:
+    if not _regular(path):
+        return None
     try:
         return json.loads(path.read_text())
     except (OSError, ValueError):
@@ -207,14 +302,23 @@ def _counts(summary: Any) -> dict[str, int]:
     return {}
 
 
+def _regular(path: Path) -> bool:
+    """A regular file (through symlinks): never opened to find out, so a FIFO cannot block us."""
+    try:
+        return stat.S_ISREG(os.stat(path).st_mode)
+    except OSError:
+        return False
+
+
 def find_runs(root: Path, max_depth: int = 3) -> list[Path]:
-    """Run directories (holding a run.mcap) under `root`, at most `max_depth` levels down."""
+    """Run directories (holding a run.mcap that is a regular file: a FIFO or a device of that name
+    is no run, and opening one would hang) under `root`, at most `max_depth` levels down."""
     if not root.is_dir():
         raise UserError(f"runs root {root}: no such directory")
     out = []
     for dirpath, dirnames, filenames in os.walk(root):
         depth = len(Path(dirpath).relative_to(root).parts)
-        if RUN_FILE in filenames:
+        if RUN_FILE in filenames and _regular(Path(dirpath) / RUN_FILE):
             out.append(Path(dirpath))
             dirnames[:] = []          # a run directory holds no other runs
         elif depth >= max_depth:
@@ -297,5 +401,6 @@ def format_metrics(stats: list[MetricStats]) -> str:
 
 
 __all__ = ["runs_root", "load_config", "config_path", "RunEntry", "read_run", "find_runs", "list_runs",
+           "SummaryFile", "read_summary_file", "summary_problem",
            "resolve_run", "format_list", "format_duration", "MetricStats", "run_metrics", "metric_stats",
            "format_metrics", "ENV_ROOT", "ENV_CONFIG"]

@@ -174,13 +174,17 @@ def check_connect_url(url: str) -> str:
     """A viewer URL as the SDK takes it: rerun+http(s)://host:port/proxy, or a bare host:port."""
     if "://" not in url:
         url = f"rerun+http://{url}/proxy"
-    parsed = urllib.parse.urlparse(url)
+    try:
+        parsed = urllib.parse.urlparse(url)
+    except ValueError as exc:        # an unclosed "[" (IPv6) and the like
+        raise UserError(f"--view/--connect {url!r}: not a URL ({exc}); expected rerun+http://HOST:PORT/proxy or "
+                        f"HOST:PORT") from None
     if parsed.scheme not in ("rerun+http", "rerun+https", "rerun") or not parsed.hostname:
         raise UserError(f"--view/--connect {url!r}: expected rerun+http://HOST:PORT/proxy or HOST:PORT")
     try:
         parsed.port
     except ValueError:
-        raise UserError(f"--view/--connect {url!r}: the port is not a number") from None
+        raise UserError(f"--view/--connect {url!r}: the port is not a number in 0..65535") from None
     return url
 
 
@@ -200,9 +204,9 @@ def attach(rec: Any, mode: str, *, blueprint: Any = None, save: str | Path | Non
            connect: str | None = None) -> Sink:
     """Point the recording stream `rec` at its sink (before anything is logged, so nothing is lost)."""
     if mode == "save":
-        out = Path(save)  # type: ignore[arg-type]
-        if out.parent and not out.parent.is_dir():
-            raise UserError(f"--save {out}: no such directory {out.parent}")
+        from lab.paths import check_output_file
+
+        out = check_output_file(save, "--save")  # type: ignore[arg-type]
         rec.save(out, default_blueprint=blueprint)
         return Sink("save", f"wrote {out}")
     if mode == "connect":

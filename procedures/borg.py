@@ -132,11 +132,18 @@ class BorgProcedure:
 
         self.rig_geometry = RigGeometry.from_rig(rig, self.model.world_T_structure(0.0), self.intrinsics.K)
         self.rig_calibration = None
+        # what the run's rig geometry comes from, for a rig that disagrees with the camera
+        self.calibration_source = f"the rig file {rig.source}'s nominal geometry"
         cal_file = calibration or rig.calibration.file
         if cal_file is not None:
             from lab.rig_calibration import load_rig_calibration
+            from lab.rig_calibration_check import check_for_rig
 
             self.rig_calibration = load_rig_calibration(cal_file)
+            # its meaning, before anything moves: a file for another bench or structure, or values
+            # no survey of this one could give, would otherwise be blamed on the structure
+            check_for_rig(self.rig_calibration, rig, self.intrinsics, self.model, str(cal_file))
+            self.calibration_source = f"calibration {cal_file}"
             self._take_measured(estimator_config, self.rig_calibration.corner_sigma_px,
                                 self.rig_calibration.tag_scale_sigma)
         self.rig_survey = (self.rig_calibration is None) if rig_survey is None else bool(rig_survey)
@@ -342,6 +349,7 @@ class BorgProcedure:
                         turntable_tags=self.model.turntable.tag_ids, rig_name=self.bench.rig.name,
                         tag_scale_sigma=float(self.measure.config.get("tag_scale_sigma", 0.0)))
         self.rig_calibration = sol.calibration
+        self.calibration_source = "the run's rig survey"
         self._take_measured(self.measure.config, sol.corner_sigma_px, sol.tag_scale_sigma)
         return sol
 
@@ -522,15 +530,38 @@ class BorgProcedure:
                 self._take_truth(record)
             views.append(record)
         self.views_done.extend(views)
+        self._check_rig_agrees(views)
         t0 = time.perf_counter()
         self.measure.add_step(name, views)
         solve_s = time.perf_counter() - t0
+        self._check_structure_fits()
         rec.log_metric("slam/update_s", solve_s, "s")
         result = self.measure.verdict(name)
         self._log_estimates(run)
         for pose, cov in self.measure.camera_estimates():
             rec.log_pose(topics.estimate_topic("camera"), pose, "structure", covariance6x6=cov)
         return result
+
+    def _check_rig_agrees(self, views: list[dict[str, Any]]) -> None:
+        """Before the round's views reach the graph: the rim tags where the calibration puts them,
+        else the run stops naming the rig, not the structure (procedures/rig_consistency.py)."""
+        if self.rig_calibration is None or self.uncalibrated:
+            return
+        from procedures.rig_consistency import turntable_disagreement
+
+        bad = turntable_disagreement(views, self.rig_geometry, self.rig_calibration, self.intrinsics.dist,
+                                     self.calibration_source)
+        if bad is not None:
+            raise StopRun(bad.reason)
+
+    def _check_structure_fits(self) -> None:
+        """After the update: most of the structure off the design's shape is the rig's doing."""
+        from procedures.rig_consistency import structure_disagreement
+
+        bad = structure_disagreement(self.measure.slam.tag_estimates(), self.model, self.measure.cutoff_m,
+                                     self.calibration_source)
+        if bad is not None:
+            raise StopRun(bad.reason)
 
     def _capture(self, run: RunContext, view: View, step: int, attempt: int, k: int):
         devices = self.bench.devices

@@ -11,6 +11,12 @@ to answer (stdin not a terminal), or the operator chose `--auto`.
 
 This is a layer in front of the SignalShield's SIGINT handler, not a change to it, so the shield's
 promise (any number of signals ends like one) is untouched.
+
+Two Ctrl-C are two, however close: Python runs a signal's handler only when the main thread is
+back in the interpreter, so two SIGINT that arrive while it is inside one long C call (an iSAM2
+update, a JPEG encode) ran the handler once, and a double Ctrl-C became a pause.  The C-level
+handler also writes one byte per signal delivered to the wakeup fd (`signal.set_wakeup_fd`); the
+handler counts the SIGINT bytes there, so the second one aborts even when its handler never runs.
 """
 
 from __future__ import annotations
@@ -44,25 +50,60 @@ class PauseControl:
     requested: bool = False
     pauses: int = 0
     _previous: Any = None
+    _wakeup: tuple[int, int] | None = None       # (read end, write end) of the wakeup pipe
+    _previous_wakeup: int = -1
 
     def install(self) -> None:
         """Take SIGINT in front of the shield (which must be installed already)."""
+        import os
         import threading
-
 
         if not self.enabled or threading.current_thread() is not threading.main_thread():
             return
         self._previous = signal.getsignal(signal.SIGINT)
+        r, w = os.pipe()
+        os.set_blocking(r, False)
+        os.set_blocking(w, False)
+        self._wakeup = (r, w)
+        self._previous_wakeup = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
         signal.signal(signal.SIGINT, self._handle)
 
     def restore(self) -> None:
+        import os
+
         if self._previous is not None:
             signal.signal(signal.SIGINT, self._previous)
             self._previous = None
+        if self._wakeup is not None:
+            signal.set_wakeup_fd(self._previous_wakeup)
+            for fd in self._wakeup:
+                os.close(fd)
+            self._wakeup = None
+
+    def _sigints_delivered(self) -> int:
+        """SIGINT delivered since the last look (each wrote its number to the wakeup pipe)."""
+        import os
+
+        if self._wakeup is None:
+            return 1
+        n = 0
+        while True:
+            try:
+                data = os.read(self._wakeup[0], 512)
+            except (BlockingIOError, InterruptedError):
+                break
+            if not data:
+                break
+            n += data.count(int(signal.SIGINT))
+        return max(n, 1)
 
     def _handle(self, signum: int, frame: Any) -> None:
         shield = self.shield
-        if self.requested or shield.cleanup or getattr(shield, "_raised", False) or getattr(shield, "_held", 0):
+        twice = self._sigints_delivered() >= 2         # two Ctrl-C, one handler call
+        if twice and not self.requested:
+            shield.signals.append(signum)              # the one whose handler never ran
+        if (twice or self.requested or shield.cleanup or getattr(shield, "_raised", False)
+                or getattr(shield, "_held", 0)):
             # the second Ctrl-C, or one during clean-up or a checkpoint write: the shield's rules
             # (held() defers it until the write is complete)
             self._previous(signum, frame) if callable(self._previous) else None

@@ -82,15 +82,66 @@ def lift_to_zero(bench: Bench, run: Any, always: bool = False) -> None:
         lift.home(progress)
 
 
-def check_speedup(speedup: float | None) -> None:
+def check_speedup(speedup: float | None, rig: Rig | None = None) -> None:
     """Simulated devices may run faster than the hardware, within reason: an infinite or huge
-    speed-up makes every timeout zero."""
+    speed-up makes every timeout zero.  With the rig, slower only as far as its simulated devices
+    can still do their work: each at least the slowest speed a rig file may give it (lab/config.py,
+    below which a device "never finishes a run"), settling within the longest settle a rig file may
+    give, and a whole travel of the turntable or the lift within the longest move the drivers
+    accept (drivers.motion.MAX_MOVE_S) -- else the run would start, home, and fail (or report a
+    speed of 0.000) with its directory left behind."""
     import math
 
     from lab.errors import UserError
 
     if speedup is not None and not (math.isfinite(speedup) and 0 < speedup <= MAX_SPEEDUP):
         raise UserError(f"--speedup must be a number in (0, {MAX_SPEEDUP:g}], got {speedup!r}")
+    if rig is None or rig.sim is None:
+        return
+    # the command's --speedup, else the rig file's own [sim] speedup: either can be too slow
+    value, name = (speedup, "--speedup") if speedup is not None else (rig.sim.speedup, f"rig {rig.source}: [sim] speedup")
+    slowest = min_speedup(rig)
+    if value < slowest.factor:
+        raise UserError(f"{name} {value:g}: {slowest.why}; the slowest this rig's simulated devices allow is "
+                        f"{slowest.factor:.3g}")
+
+
+@dataclass(frozen=True)
+class SlowestSpeedup:
+    factor: float
+    why: str          # what the device could not do below it
+
+
+def min_speedup(rig: Rig) -> SlowestSpeedup:
+    """The smallest speed-up at which every simulated device of `rig` can still work (see
+    `check_speedup`)."""
+    from drivers.motion import MAX_MOVE_S
+    from lab.config import SIM_DEVICE_KEYS, SIM_MAXIMA
+
+    assert rig.sim is not None
+    out = SlowestSpeedup(0.0, "")
+    for dev in ("turntable", "stewart", "ipjr", "lift"):
+        cfg = getattr(rig.sim, dev)
+        if not cfg:
+            continue
+        key = "speed_deg_s" if "speed_deg_s" in cfg else "speed_mm_s"
+        unit = key.split("_", 1)[1].replace("_", "/")
+        speed, floor = float(cfg[key]), SIM_DEVICE_KEYS[dev][key][1]
+        need = [(floor / speed, f"the simulated {dev} would move slower than {floor:g} {unit} ([sim.{dev}] {key} = "
+                                f"{speed:g} times the speed-up)")]
+        if cfg.get("settle_s", 0.0) > 0:
+            need.append((cfg["settle_s"] / SIM_MAXIMA["settle_s"], f"the simulated {dev} would settle for longer than "
+                                                                   f"{SIM_MAXIMA['settle_s']:g} s"))
+        travel = {"turntable": ("min_deg", "max_deg"), "lift": ("min_mm", "max_mm")}.get(dev)
+        if travel is not None:
+            span = abs(cfg[travel[1]] - cfg[travel[0]])
+            need.append((span / (speed * MAX_MOVE_S), f"the simulated {dev}'s whole travel ({span:g} "
+                                                      f"{unit.split('/')[0]}) would take longer than the "
+                                                      f"{MAX_MOVE_S:g} s the drivers allow one move"))
+        for factor, why in need:
+            if factor > out.factor:
+                out = SlowestSpeedup(factor, why)
+    return out
 
 
 def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *, simulate: bool | None = None,
@@ -102,7 +153,7 @@ def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *,
 
     rig = load_rig(rig_path)
     scenario = load_scenario(scenario_path)
-    check_speedup(speedup)
+    check_speedup(speedup, rig if (rig.sim is not None if simulate is None else simulate) else None)
     if scenario_path is None and rig.sim is not None:
         scenario = Scenario(seed=rig.sim.seed)
     bench = Bench(rig, scenario)

@@ -120,7 +120,7 @@ def test_an_interrupted_study_keeps_its_finished_trials_and_resumes_from_them(tm
         with Study(InProcess(), Journal(path, {"study": "x"})) as study:
             study.map(interrupt_at, make_trials(0, "t", stopped))
     lines = path.read_text().splitlines()
-    assert json.loads(lines[0]) == {"study": {"study": "x"}}
+    assert json.loads(lines[0]) == {"study": {"study": "x"}, "journal": 2}
     assert [json.loads(line)["key"] for line in lines[1:]] == [f"t/{i}" for i in range(5)]
 
     ran: list[str] = []

@@ -119,6 +119,14 @@ def _camera(args: argparse.Namespace) -> int:
         raise UserError(f"--out {out} is a directory; give a file name such as {out / DEFAULT_OUT}")
     if out.exists() and not args.force:
         raise UserError(f"--out {out} already exists; choose another file or add --force to replace it")
+    from lab.paths import check_output_dir, check_output_file
+
+    # written at the end, after every view: checked before the first
+    check_output_file(out, "--out")
+    if args.record:
+        check_output_file(args.record, "--record")
+    if args.save_frames:
+        check_output_dir(args.save_frames, "--save-frames")
     if args.sim is not None and not 1 <= args.sim <= 500:
         raise UserError(f"--sim {args.sim}: the number of simulated views must be 1..500")
     if args.sim is not None and isinstance(board, cal.ChessboardSpec):
@@ -275,8 +283,14 @@ def _rig(args: argparse.Namespace) -> int:
     from lab.runs import runs_root
 
     run_dir = Path(args.run_dir) if args.run_dir else runs_root()[0] / f"calibrate-rig-{time.strftime('%Y%m%d-%H%M%S')}"
-    if not args.dry_run and (run_dir / runner.RUN_FILE).exists():
-        raise UserError(f"--run-dir {run_dir} already holds a run; choose another")
+    if not args.dry_run:
+        from lab.paths import check_output_dir, check_output_file
+
+        # both are written after the survey: find out now, before anything moves, that they can be
+        check_output_file(out, "--out")
+        check_output_dir(run_dir, "--run-dir" if args.run_dir else "the run directory (--run-dir)")
+        if (run_dir / runner.RUN_FILE).exists():
+            raise UserError(f"--run-dir {run_dir} already holds a run; choose another")
     bench = open_bench(args.rig, args.scenario, speedup=args.speedup, only=None)
     try:
         proc = RigCalibrationProcedure(bench, out, angle_step_rad=math.radians(args.angle_step_deg))
@@ -420,8 +434,9 @@ def _board(args: argparse.Namespace) -> int:
         pad_w, pad_h = round(sw * px_per_mm) - img.shape[1], round(sh * px_per_mm) - img.shape[0]
         img = cv2.copyMakeBorder(img, pad_h // 2, pad_h - pad_h // 2, pad_w // 2, pad_w - pad_w // 2,
                                  cv2.BORDER_CONSTANT, value=255)
-    if out.parent != Path("") and not out.parent.is_dir():
-        raise UserError(f"--out {out}: no such directory {out.parent}")
+    from lab.paths import check_output_file
+
+    check_output_file(out, "--out")
     import matplotlib
 
     matplotlib.use("Agg")

@@ -71,7 +71,7 @@ def _sim(args: argparse.Namespace) -> int:
     rig = _load(args.rig)
     if not rig.simulated:
         raise UserError(f"rig {rig.source} has no [sim] table: it describes real hardware, there is nothing to simulate")
-    check_speedup(args.speedup)
+    check_speedup(args.speedup, rig)          # what its simulated devices can do, too
     risky = ports_in_ephemeral_range(rig)
     if risky:   # an outgoing connection may hold such a port: "Address already in use", now or later
         lo, hi = ephemeral_port_range()

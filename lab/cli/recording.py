@@ -61,6 +61,14 @@ def _review(args: argparse.Namespace) -> int:
 
     if not Path(args.file).is_file():
         raise UserError(f"{args.file}: no such file")
+    if args.save:
+        from lab.paths import check_output_file
+
+        check_output_file(args.save, "--save")      # before the run is read, not after
+    if args.connect:
+        from lab.viewer import check_connect_url
+
+        check_connect_url(args.connect)
     rep = review(args.file, args.save, mode=choose_mode(args.save, args.connect, args.web), connect=args.connect)
     try:
         print(f"{rep.path}: {rep.messages} messages, {rep.steps} steps completed, result {rep.result}")

@@ -60,6 +60,7 @@ def check_rig(path: str) -> RigReport:
         rep.devices.append({"device": lf.name, "url": lf.link.url,
                             "note": f"travel {lf.min_m * 1000:.0f}..{lf.max_m * 1000:.0f} mm"})
     camera_ready = False
+    intr = None
     if rig.camera is not None:
         c = rig.camera
         if c.calibration is None:
@@ -78,8 +79,15 @@ def check_rig(path: str) -> RigReport:
     borg_rig = rig.turntable is not None and rig.stewart is not None and rig.camera is not None
     if rig.calibration.file is not None:
         from lab.rig_calibration import load_rig_calibration
+        from lab.rig_calibration_check import check_for_rig
+        from lab.structures.borg import build_borg
 
-        load_rig_calibration(rig.calibration.file)
+        cal = load_rig_calibration(rig.calibration.file)      # its covariances' meaning too
+        if borg_rig:
+            # made for this rig, close to its nominal geometry and the rim tags of the structure
+            # `lab calibrate rig` surveys (the camera's part once the camera is calibrated)
+            check_for_rig(cal, rig, intr if camera_ready else None,
+                          build_borg(rig.sim.borg_n if rig.sim is not None else 3), str(rig.calibration.file))
     elif borg_rig:
         rep.todo.append(f"rig calibration (camera mount, Stewart base, turntable axis): `lab calibrate rig --rig "
                         f"{path} --out rig_calibration.json`, then set file = \"rig_calibration.json\" in "

@@ -54,12 +54,20 @@ def _list(args: argparse.Namespace) -> int:
 
 
 def _show(args: argparse.Namespace) -> int:
+    from lab.errors import UserError
     from lab.runs import format_duration, read_run, resolve_run
 
     root = _root(args)
     run_dir = resolve_run(args.run, root)
     entry = read_run(run_dir, root)
-    summary = _summary(run_dir)
+    from lab.runs import read_summary_file
+
+    sf = read_summary_file(run_dir)
+    summary = sf.summary
+    damaged = f"{run_dir / 'summary.json'}: {sf.problem}" if sf.problem not in ("", "missing") else ""
+    if damaged and getattr(args, "json", False):
+        raise UserError(f"{damaged}: the run's summary is damaged (`lab runs show {args.run}` without --json shows "
+                        f"what run.mcap says)")
     timings = None
     if getattr(args, "timings", False):
         from dataclasses import asdict
@@ -83,8 +91,17 @@ def _show(args: argparse.Namespace) -> int:
     print(f"result {entry.result}{' - ' + entry.reason if entry.reason else ''}")
     if entry.argv:
         print("command: lab " + " ".join(entry.argv[1:]))
+    if damaged:
+        # the run's own record (above, from run.mcap) stands; the tables cannot be trusted
+        raise UserError(f"{damaged}: the run's summary is damaged, so no table is shown (the lines above are from "
+                        f"run.mcap)")
     if summary is None:
-        print("no summary.json (the run stopped before its first step ended)")
+        if entry.result in ("completed", "aborted", "failed"):
+            print(f"no summary.json: the run ended {entry.result} and wrote one, so it was deleted or moved since")
+        elif entry.result == "running":
+            print("no summary.json yet: the run has not finished its first step")
+        else:
+            print("no summary.json (the run stopped before its first step ended)")
         return 0
     print()
     if isinstance(summary.get("modules"), list):
@@ -103,11 +120,3 @@ def _show(args: argparse.Namespace) -> int:
         print()
         print(format_metrics(timings) if timings else "no metrics in run.mcap")
     return 0
-
-
-def _summary(run_dir):
-    try:
-        value = json.loads((run_dir / "summary.json").read_text())
-    except (OSError, ValueError):
-        return None
-    return value if isinstance(value, dict) else None

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from lab.errors import UserError
 from lab.executor.backends import MAX_WORKERS, TrialExecutor, check_scheduler, check_workers, make_executor
@@ -29,12 +29,14 @@ def executor_from_args(args: argparse.Namespace) -> TrialExecutor:
     return make_executor(getattr(args, "workers", None), getattr(args, "scheduler", None))
 
 
-def open_study(args: argparse.Namespace, out_dir: str | os.PathLike, study: dict[str, Any], label: str) -> Study:
+def open_study(args: argparse.Namespace, out_dir: str | os.PathLike, study: dict[str, Any], label: str,
+               validate: Callable[[Any], str | None] | None = None) -> Study:
     """The executor of --workers / --scheduler, the journal `OUT/trials.jsonl` of this study
-    (`study`: its parameters, JSON; a rerun with the same ones resumes), a progress bar."""
+    (`study`: its parameters, JSON; a rerun with the same ones resumes; `validate`: what a restored
+    result must be, lab.executor.journal.Journal), a progress bar."""
     executor = executor_from_args(args)
     try:
-        journal = Journal(Path(out_dir) / JOURNAL_NAME, study)
+        journal = Journal(Path(out_dir) / JOURNAL_NAME, study, validate=validate)
     except BaseException:
         executor.close()
         raise

@@ -40,6 +40,7 @@ class ScanState:
     stop_reason: str = ""         # why the scan stopped early, "" if it reached the footer
     damaged: list[str] = field(default_factory=list)   # salvage: what was skipped, and why
     lost_messages: int = 0        # salvage: messages whose channel definition was lost
+    budget_reached: bool = False  # the scan stopped at its byte budget (`max_bytes`), not at the end
 
     @property
     def dropped_bytes(self) -> int:
@@ -127,9 +128,10 @@ def _resync(f: io.BufferedReader, start: int, file_bytes: int) -> tuple[int, lis
         pos += 1
 
 
-def scan_records(path: str | os.PathLike[str], state: ScanState | None = None, *, salvage: bool = False
-                 ) -> Iterator[tuple[Schema | None, Channel, Message]]:
+def scan_records(path: str | os.PathLike[str], state: ScanState | None = None, *, salvage: bool = False,
+                 max_bytes: int | None = None) -> Iterator[tuple[Schema | None, Channel, Message]]:
     """(schema, channel, message) for every complete message in file order; fills `state`.
+    `max_bytes`: stop (`state.budget_reached`) before a record that starts beyond it.
 
     By default the scan stops at the first incomplete or corrupt record (what a reader of a run in
     progress wants).  With `salvage` it skips a corrupt record and carries on at the next intact
@@ -144,6 +146,10 @@ def scan_records(path: str | os.PathLike[str], state: ScanState | None = None, *
             schemas, channels = _summary_definitions(f)
         while True:
             offset = f.tell()
+            if max_bytes is not None and offset > max_bytes:
+                st.budget_reached = True
+                st.stop_reason = f"read the first {offset} of {st.file_bytes} bytes only"
+                return
             head = f.read(9)
             if len(head) < 9:
                 st.stop_reason = "file ends without a footer" if not head else "file ends inside a record header"
@@ -152,7 +158,12 @@ def scan_records(path: str | os.PathLike[str], state: ScanState | None = None, *
             problem = ""
             records: list[Any] = []
             body = b""
-            if opcode not in _KNOWN_OPCODES and salvage:
+            if opcode == 0:
+                # MCAP reserves opcode 0: zeros where a record should start are a file cut and padded
+                # (a crash before the data reached the disk), not records; read as empty ones they
+                # took 9 bytes a step through the whole padding
+                problem = "zero bytes where a record should start (the file was cut short and padded)"
+            elif opcode not in _KNOWN_OPCODES and salvage:
                 problem = f"unknown opcode {opcode:#x}"
             elif length > st.file_bytes:
                 problem = f"record claims {length} bytes, more than the file holds"
@@ -256,11 +267,12 @@ class Decoders:
 
 
 def iter_messages(path: str | os.PathLike[str], topics_: Iterable[str] | str | None = None,
-                  state: ScanState | None = None) -> Iterator[RecordedMessage]:
-    """Decoded messages of a run (complete or cut short), in file order, optionally only `topics_`."""
+                  state: ScanState | None = None, max_bytes: int | None = None) -> Iterator[RecordedMessage]:
+    """Decoded messages of a run (complete or cut short), in file order, optionally only `topics_`
+    (`max_bytes`: as for `scan_records`)."""
     wanted = {topics_} if isinstance(topics_, str) else (set(topics_) if topics_ is not None else None)
     decoders = Decoders()
-    for schema, channel, msg in scan_records(path, state):
+    for schema, channel, msg in scan_records(path, state, max_bytes=max_bytes):
         if wanted is not None and channel.topic not in wanted:
             continue
         decoded = decoders.decoder(schema, channel)(msg.data)

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from lab.executor import Trial, open_study, without_executor_args
+from lab.executor.journal import finite_values
 
 
 def save_figure(fig, out_dir: str, name: str, dpi: int = 110) -> str:
@@ -60,7 +61,10 @@ def run_trial_study(args: argparse.Namespace, name: str, runs: Sequence[Trial], 
         return {"command": command, "runs": len(trials), "wall_s": time.perf_counter() - t0, **params,
                 "rows": aggregate(trials), "trials": trials, "executor": study_executor}
 
-    with open_study(args, out, {"bench": name, **params, "speedup": args.speedup}, f"lab bench {name}") as study:
+    # a restored trial is an input: its numbers finite (these studies write null for "none"), so
+    # a NaN typed into the journal is refused, not drawn
+    with open_study(args, out, {"bench": name, **params, "speedup": args.speedup}, f"lab bench {name}",
+                    validate=finite_values) as study:
         def done(t: Trial, r: dict[str, Any]) -> None:
             finished[t.key] = r
             (out / f"{name}.json").write_text(json.dumps(result(study.describe()), indent=1))

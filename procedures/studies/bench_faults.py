@@ -769,7 +769,9 @@ def sharing_cases(work: Path, quick: bool) -> list[Case]:
 # ---- the command ----------------------------------------------------------------------------
 
 
-SECTIONS = ("devices", "kill", "signals", "inputs", "protocol", "sharing", "links")
+SECTIONS = ("devices", "kill", "signals", "inputs", "protocol", "sharing",
+            "links",           # procedures/studies/bench_faults_links.py
+            "input-meaning")   # procedures/studies/bench_faults_inputs.py
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -777,6 +779,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help='print {"cases", "ok", "bad": [{"case", "expected", "got"}]}')
     p.add_argument("--only", choices=SECTIONS, action="append", help="run only these sections (repeatable)")
     p.add_argument("--keep", metavar="DIR", help="keep the runs in DIR (default: a temporary directory)")
+
+
+def _input_meaning_cases(work: Path, quick: bool) -> list[Any]:
+    from procedures.studies.bench_faults_inputs import cases
+
+    return cases(work, quick)
 
 
 def campaign(quick: bool, only: list[str] | None = None, work: Path | None = None,
@@ -796,6 +804,7 @@ def campaign(quick: bool, only: list[str] | None = None, work: Path | None = Non
         "protocol": lambda: protocol_cases(quick),
         "sharing": lambda: sharing_cases(work, quick),
         "links": lambda: [Case(*spec) for spec in link_cases(work, quick)],
+        "input-meaning": lambda: _input_meaning_cases(work, quick),
     }
     try:
         for section in SECTIONS:
