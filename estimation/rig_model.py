@@ -238,6 +238,55 @@ def distortion_prior_sigmas(sigma_px: float, K: np.ndarray) -> np.ndarray:
     return np.array([sigma_px / (f * rc ** 3), sigma_px / (f * rc ** 5)])
 
 
+def _cal_vector(K: gtsam.Cal3_S2) -> np.ndarray:
+    return np.array([K.fx(), K.fy(), K.skew(), K.px(), K.py()])
+
+
+def project_corners(world_T_camera: Pose3, world_T_tag: Pose3, local: np.ndarray, cal: np.ndarray,
+                    meas: np.ndarray, want_jacobians: bool = True, want_calibration: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """Reprojection error (8,) of a tag's four corners (`local`, (4, 3) in the tag frame as
+    printed) through the pinhole `cal` = (fx, fy, s, u0, v0), and its Jacobians against the camera
+    pose and the tag pose (GTSAM's tangent, rotation first) and, with `want_calibration`, the
+    calibration.  All four corners in one pass of numpy: the graph calls this once per corner
+    factor per relinearisation, and a loop of gtsam's per-point projections costs twice as much.
+    A corner behind the camera gets a large flat error and no gradient, as gtsam's does."""
+    E = world_T_camera.between(world_T_tag)
+    Em = E.matrix()
+    q = local @ Em[:3, :3].T + Em[:3, 3]                 # (4, 3) corners in the camera frame
+    z = q[:, 2]
+    ok = z > 0
+    iz = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
+    x, y = q[:, 0] * iz, q[:, 1] * iz
+    fx, fy, sk, u0, v0 = cal
+    e = np.empty(8)
+    e[0::2] = fx * x + sk * y + u0 - meas[:, 0]
+    e[1::2] = fy * y + v0 - meas[:, 1]
+    if not ok.all():
+        e[np.repeat(~ok, 2)] = 1e3
+    if not want_jacobians:
+        return e, None, None, None
+    # the normalised image point against the camera's own motion (the classic interaction
+    # matrix), then through the calibration; the tag moves the relative pose E from the other side,
+    # so its Jacobian is the camera's through -Ad(E)
+    xy = x * y
+    Ju = np.stack([xy, -(1.0 + x * x), y, -iz, np.zeros(4), x * iz], axis=1)
+    Jv = np.stack([1.0 + y * y, -xy, -x, np.zeros(4), -iz, y * iz], axis=1)
+    JC = np.empty((8, 6))
+    JC[0::2] = fx * Ju + sk * Jv
+    JC[1::2] = fy * Jv
+    if not ok.all():
+        JC[np.repeat(~ok, 2)] = 0.0
+    JT = -JC @ E.AdjointMap()
+    JK = None
+    if want_calibration:
+        JK = np.zeros((8, 5))
+        JK[0::2, 0], JK[0::2, 2], JK[0::2, 3] = x, y, 1.0
+        JK[1::2, 1], JK[1::2, 4] = y, 1.0
+        JK[np.repeat(~ok, 2)] = 0.0
+    return e, JC, JT, JK
+
+
 def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_corners_m: np.ndarray,
                   sigma_px: float, intrinsics_key: int = INTRINSICS,
                   robust_k: float | None = 3.0, fixed: gtsam.Cal3_S2 | None = None,
@@ -251,44 +300,34 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     With `distortion` = (key, radial_basis(corners)) the measured corners are corrected by the
     lens's radial distortion error, a 2-vector variable shared by every sighting."""
     meas = np.asarray(corners_px, dtype=float).reshape(4, 2)
-    local = [np.asarray(p, dtype=float) for p in tag_corners_m]
+    local = np.asarray(tag_corners_m, dtype=float).reshape(4, 3)
     noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(8, sigma_px)
     if robust_k:
         noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_k), noise)
+    fixed_K = None if fixed is None else _cal_vector(fixed)
+    lens_basis = None if distortion is None else np.asarray(distortion[1], float)
+
+    local_rows = np.repeat(local, 2, axis=0)             # (8, 3): each row's corner, for the scale
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
-        C = values.atPose3(camera_key)
-        T = values.atPose3(tag_key)
-        cam = gtsam.PinholeCameraCal3_S2(C, fixed if fixed is not None else values.atCal3_S2(intrinsics_key))
         k = 1.0 + float(values.atVector(scale_key)[0]) if scale_key is not None else 1.0
-        e = np.zeros(8)
-        if distortion is not None:
-            e -= distortion[1] @ values.atVector(distortion[0])
-        JC, JT, JK, JS = np.zeros((8, 6)), np.zeros((8, 6)), np.zeros((8, 5)), np.zeros((8, 1))
-        Hp, Hl = np.zeros((3, 6), order="F"), np.zeros((3, 3), order="F")
-        Dp, Dpt, Dk = np.zeros((2, 6), order="F"), np.zeros((2, 3), order="F"), np.zeros((2, 5), order="F")
-        for i in range(4):
-            p = T.transformFrom(k * local[i], Hp, Hl)
-            try:
-                uv = cam.project(p, Dp, Dpt, Dk)
-            except RuntimeError:          # behind the camera: a large, flat error
-                e[2 * i:2 * i + 2] = 1e3
-                continue
-            e[2 * i:2 * i + 2] += uv - meas[i]
-            JC[2 * i:2 * i + 2] = Dp
-            JT[2 * i:2 * i + 2] = Dpt @ Hp
-            JK[2 * i:2 * i + 2] = Dk
-            JS[2 * i:2 * i + 2, 0] = Dpt @ Hl @ local[i]
+        cal = fixed_K if fixed_K is not None else _cal_vector(values.atCal3_S2(intrinsics_key))
+        e, JC, JT, JK = project_corners(values.atPose3(camera_key), values.atPose3(tag_key), k * local, cal, meas,
+                                        want_jacobians=jacobians is not None, want_calibration=fixed is None)
+        if lens_basis is not None:
+            e -= lens_basis @ values.atVector(distortion[0])
         if jacobians is not None:
             jacobians[0], jacobians[1] = JC, JT
             if fixed is None:
                 jacobians[2] = JK
             j = 2 if fixed is not None else 3
             if scale_key is not None:
-                jacobians[j] = JS
+                # a corner moves with the tag's scale as with a tag-frame translation by its own
+                # position: the tag Jacobian's translation block, row by row, against the corner
+                jacobians[j] = np.sum(JT[:, 3:] * local_rows, axis=1, keepdims=True)
                 j += 1
-            if distortion is not None:
-                jacobians[j] = -distortion[1]
+            if lens_basis is not None:
+                jacobians[j] = -lens_basis
         return e
 
     keys = [camera_key, tag_key] if fixed is not None else [camera_key, tag_key, intrinsics_key]
@@ -316,9 +355,15 @@ OBLIQUE_EXPONENT = 2.0
 
 def side_ratio(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> float:
     """Shortest over longest side of a tag's undistorted quadrilateral: ~cos(incidence)."""
-    u = undistort_px(np.asarray(corners_px, float), K, dist)
-    sides = np.linalg.norm(np.roll(u, -1, axis=0) - u, axis=1)
-    return float(sides.min() / sides.max()) if sides.max() > 0 else 0.0
+    return undistorted_side_ratio(undistort_px(np.asarray(corners_px, float), K, dist))
+
+
+def undistorted_side_ratio(u: np.ndarray) -> float:
+    """`side_ratio` of corners already undistorted, (4, 2)."""
+    d = np.diff(u, axis=0, append=u[:1])
+    sides = np.sqrt(np.einsum("ij,ij->i", d, d))
+    top = sides.max()
+    return float(sides.min() / top) if top > 0 else 0.0
 
 
 def tag_prior_noise(sigma_m: float, size_m: float) -> gtsam.noiseModel.Base:
