@@ -30,6 +30,7 @@ import io
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -55,14 +56,22 @@ def _main(argv: list[str]) -> tuple[Any, str, str]:
     """`lab ARGV` in this process: (exit code, stdout, stderr)."""
     from lab.cli import main
 
+    # a command owns its process's signal handlers (`lab run` ignores a late Ctrl-C once its run is
+    # closed, until it exits); here the process is the caller's, so they are given back
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     err, out = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
-        try:
-            code: Any = main(argv)
-        except SystemExit as exc:
-            code = exc.code
-        except Exception as exc:
-            return "uncaught", "", f"{type(exc).__name__}: {exc}"
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+            try:
+                code: Any = main(argv)
+            except SystemExit as exc:
+                code = exc.code
+            except Exception as exc:
+                return "uncaught", "", f"{type(exc).__name__}: {exc}"
+    finally:
+        for sig, handler in handlers.items():
+            if handler is not None:        # None: a handler not set from Python, left as it is
+                signal.signal(sig, handler)
     return code, out.getvalue(), err.getvalue()
 
 
