@@ -28,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     bench_sub.required = True
     for name, (module_name, help_text) in BENCHES.items():
         bp = bench_sub.add_parser(name, help=help_text)
-        bp.set_defaults(func=_runner(module_name), _bench_parser=bp)
+        bp.set_defaults(func=_runner(module_name), _bench_parser=bp, lab_main=_lab_main)
         try:
             module = importlib.import_module(module_name)
         except ModuleNotFoundError as exc:
@@ -44,6 +44,14 @@ def _runner(module_name: str):
         return importlib.import_module(module_name).run(args)
 
     return run
+
+
+def _lab_main(argv: list[str]) -> int:
+    """`lab ARGV` in this process, for a study that runs commands (the fault campaign): the studies
+    sit below the CLI and get it from here, as `args.lab_main`, instead of importing it."""
+    from lab.cli import main
+
+    return main(argv)
 
 
 def _missing(name: str):

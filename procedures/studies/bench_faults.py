@@ -346,15 +346,14 @@ def signal_cases(ref: Reference, work: Path, quick: bool) -> list[Case]:
 # ---- bad inputs -----------------------------------------------------------------------------
 
 
-def _cli_one_line(argv: list[str]) -> str:
-    """Run `lab ARGV` in this process: "" if it exits 2 with one line on stderr and no traceback."""
-    from lab.cli import main
-
+def _cli_one_line(lab_main: Callable[[list[str]], Any], argv: list[str]) -> str:
+    """Run `lab ARGV` in this process (`lab_main`: the CLI's entry point, passed down by the command
+    running the campaign): "" if it exits 2 with one line on stderr and no traceback."""
     err, out = io.StringIO(), io.StringIO()
     code: Any
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
         try:
-            code = main(argv)
+            code = lab_main(argv)
         except SystemExit as exc:
             code = exc.code
         except Exception as exc:
@@ -400,13 +399,14 @@ RIG_EDITS = {
 }
 
 
-def input_cases(work: Path, quick: bool) -> list[Case]:
+def input_cases(lab_main: Callable[[list[str]], Any], work: Path, quick: bool) -> list[Case]:
     d = work / "inputs"
     d.mkdir(parents=True, exist_ok=True)
     cases: list[Case] = []
 
     def case(name: str, argv: list[str]) -> None:
-        cases.append(Case(f"inputs/{name}", "exit 2, one line on stderr, no traceback", lambda: _cli_one_line(argv)))
+        cases.append(Case(f"inputs/{name}", "exit 2, one line on stderr, no traceback",
+                          lambda: _cli_one_line(lab_main, argv)))
 
     out = str(d / "never")
     for name, text in SCENARIOS.items():
@@ -781,14 +781,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keep", metavar="DIR", help="keep the runs in DIR (default: a temporary directory)")
 
 
-def _input_meaning_cases(work: Path, quick: bool) -> list[Any]:
+def _input_meaning_cases(lab_main: Callable[[list[str]], Any], work: Path, quick: bool) -> list[Any]:
     from procedures.studies.bench_faults_inputs import cases
 
-    return cases(work, quick)
+    return cases(work, quick, lab_main)
 
 
 def campaign(quick: bool, only: list[str] | None = None, work: Path | None = None,
-             progress: Callable[[str], None] = lambda s: None) -> Report:
+             progress: Callable[[str], None] = lambda s: None, *, lab_main: Callable[[list[str]], Any]) -> Report:
+    """The campaign's cases, section by section.  `lab_main`: the CLI's entry point (`lab.cli.main`,
+    `args.lab_main` under `lab bench faults`), which the inputs sections run in this process; a
+    study sits below the CLI and does not import it."""
     tmp = None
     if work is None:
         tmp = tempfile.TemporaryDirectory(prefix="lab-faults-")
@@ -800,11 +803,11 @@ def campaign(quick: bool, only: list[str] | None = None, work: Path | None = Non
         "devices": lambda: device_cases(quick),
         "kill": lambda: kill_cases(ref, work, quick),
         "signals": lambda: signal_cases(ref, work, quick),
-        "inputs": lambda: input_cases(work, quick),
+        "inputs": lambda: input_cases(lab_main, work, quick),
         "protocol": lambda: protocol_cases(quick),
         "sharing": lambda: sharing_cases(work, quick),
         "links": lambda: [Case(*spec) for spec in link_cases(work, quick)],
-        "input-meaning": lambda: _input_meaning_cases(work, quick),
+        "input-meaning": lambda: _input_meaning_cases(lab_main, work, quick),
     }
     try:
         for section in SECTIONS:
@@ -825,7 +828,8 @@ def campaign(quick: bool, only: list[str] | None = None, work: Path | None = Non
 def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     show = (lambda s: print(f"  {s}", file=sys.stderr, flush=True)) if not args.json and os.isatty(2) else (lambda s: None)
-    report = campaign(bool(args.quick), args.only, Path(args.keep) if args.keep else None, show)
+    report = campaign(bool(args.quick), args.only, Path(args.keep) if args.keep else None, show,
+                      lab_main=args.lab_main)
     wall = time.perf_counter() - t0
     if args.json:
         print(json.dumps({"cases": report.cases, "ok": report.ok, "bad": report.bad, "seconds": report.seconds,

@@ -19,7 +19,9 @@ section (procedures/studies/bench_faults.py runs it like the others).
 - ctrl-c:       two SIGINT 50 ms apart inside one long C call abort; one asks for the pause.
 
 A case is a `Case` as bench_faults.py's (name, what must follow, a check returning "" or what
-happened); this module does not import that one, so the two stay free of an import cycle.
+happened); this module does not import that one, so the two stay free of an import cycle.  The
+commands run in this process through `lab_main`, the CLI's entry point (`lab.cli.main`), which the
+command running the campaign passes down: a study sits below the CLI and does not import it.
 """
 
 from __future__ import annotations
@@ -44,6 +46,9 @@ FAST = ["--auto", "--quiet", "--speedup", "100"]
 QUICK_BEFORE_MOTION_S = 15.0     # the shortest survey moves for 20-30 s: a refusal sooner moved nothing
 
 
+LabMain = Callable[[list[str]], Any]   # the CLI's entry point: `lab ARGV` in this process, its exit code
+
+
 @dataclass
 class Case:
     name: str
@@ -51,14 +56,12 @@ class Case:
     check: Callable[[], str]          # "" when the case ends as expected, else what happened
 
 
-def _main(argv: list[str]) -> tuple[Any, str, str]:
+def _main(lab_main: LabMain, argv: list[str]) -> tuple[Any, str, str]:
     """`lab ARGV` in this process: (exit code, stdout, stderr)."""
-    from lab.cli import main
-
     err, out = io.StringIO(), io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
         try:
-            code: Any = main(argv)
+            code: Any = lab_main(argv)
         except SystemExit as exc:
             code = exc.code
         except Exception as exc:
@@ -66,11 +69,12 @@ def _main(argv: list[str]) -> tuple[Any, str, str]:
     return code, out.getvalue(), err.getvalue()
 
 
-def _one_line(argv: list[str], names: str = "", within_s: float | None = None, absent: Path | None = None) -> str:
+def _one_line(lab_main: LabMain, argv: list[str], names: str = "", within_s: float | None = None,
+              absent: Path | None = None) -> str:
     """"" if `lab ARGV` exits 2 with one line on stderr that contains `names`, no traceback, within
     `within_s`, leaving `absent` absent."""
     t0 = time.monotonic()
-    code, out, err = _main(argv)
+    code, out, err = _main(lab_main, argv)
     dt = time.monotonic() - t0
     lines = [ln for ln in err.splitlines() if ln.strip()]
     if code != 2:
@@ -91,12 +95,12 @@ def _one_line(argv: list[str], names: str = "", within_s: float | None = None, a
 # ---- calibration-file contents -----------------------------------------------------------------------
 
 
-def _survey(work: Path) -> dict[str, Any]:
+def _survey(lab_main: LabMain, work: Path) -> dict[str, Any]:
     """The survey's own file (a short one: 45 deg turntable steps, devices 100x faster), made once."""
     out = work / "survey" / "rig_calibration.json"
     if not out.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
-        code, _, err = _main(["calibrate", "rig", *FAST, "--angle-step-deg", "45", "--out", str(out),
+        code, _, err = _main(lab_main, ["calibrate", "rig", *FAST, "--angle-step-deg", "45", "--out", str(out),
                               "--run-dir", str(work / "survey" / "run")])
         if code != 0:
             raise RuntimeError(f"the reference survey failed: exit {code}: {err.strip()[-300:]}")
@@ -178,31 +182,32 @@ CALIBRATION_EDITS: list[tuple[str, Callable[[dict[str, Any]], None], str]] = [
 ]
 
 
-def calibration_cases(work: Path, quick: bool) -> list[Case]:
+def calibration_cases(lab_main: LabMain, work: Path, quick: bool) -> list[Case]:
     d = work / "calibration"
     cases: list[Case] = []
 
     def check_rig(edit: Callable[[dict[str, Any]], None], name: str, names: str) -> Callable[[], str]:
         def run() -> str:
-            data = copy.deepcopy(_survey(work))
+            data = copy.deepcopy(_survey(lab_main, work))
             edit(data)
-            return _one_line(["rig", "check", str(_rig_with(d, name, data))], names)
+            return _one_line(lab_main, ["rig", "check", str(_rig_with(d, name, data))], names)
         return run
 
     def refuse_run(edit: Callable[[dict[str, Any]], None], name: str, names: str) -> Callable[[], str]:
         def run() -> str:
-            data = copy.deepcopy(_survey(work))
+            data = copy.deepcopy(_survey(lab_main, work))
             edit(data)
             d.mkdir(parents=True, exist_ok=True)
             cal = d / f"run-{name}.json"
             cal.write_text(json.dumps(data))
             out = d / f"out-{name}"
-            return _one_line(["run", "borg", *FAST, "--modules", "1", "--calibration", str(cal), "--out", str(out)],
-                             names, within_s=QUICK_BEFORE_MOTION_S, absent=out)
+            return _one_line(lab_main, ["run", "borg", *FAST, "--modules", "1", "--calibration", str(cal),
+                                        "--out", str(out)], names, within_s=QUICK_BEFORE_MOTION_S, absent=out)
         return run
 
     cases.append(Case("input-meaning/calibration/the survey's own file", "lab rig check: valid, exit 0",
-                      lambda: "" if (r := _main(["rig", "check", str(_rig_with(d, "good", _survey(work)))]))[0] == 0
+                      lambda: "" if (r := _main(lab_main, ["rig", "check",
+                                                           str(_rig_with(d, "good", _survey(lab_main, work)))]))[0] == 0
                       else f"exit {r[0]}: {r[2].strip()[-200:]}"))
     for name, edit, names in CALIBRATION_EDITS:
         slug = name.replace(" ", "_")
@@ -215,20 +220,21 @@ def calibration_cases(work: Path, quick: bool) -> list[Case]:
     if not quick:
         cases.append(Case("input-meaning/calibration/the camera disagrees with the file",
                           "aborted (exit 3) saying the rig or its calibration is wrong; no module blamed",
-                          lambda: _disagreement(work, d)))
+                          lambda: _disagreement(lab_main, work, d)))
     return cases
 
 
-def _disagreement(work: Path, d: Path) -> str:
+def _disagreement(lab_main: LabMain, work: Path, d: Path) -> str:
     """Within every bound, but the Stewart base 15 cm from where it is."""
-    data = copy.deepcopy(_survey(work))
+    data = copy.deepcopy(_survey(lab_main, work))
     data["world_T_base"]["xyz_m"][1] += 0.15
     d.mkdir(parents=True, exist_ok=True)
     cal = d / "shifted.json"
     cal.write_text(json.dumps(data))
     out = d / "shifted-run"
     shutil.rmtree(out, ignore_errors=True)
-    code, _, err = _main(["run", "borg", *FAST, "--modules", "2", "--calibration", str(cal), "--out", str(out)])
+    code, _, err = _main(lab_main, ["run", "borg", *FAST, "--modules", "2", "--calibration", str(cal),
+                                    "--out", str(out)])
     try:
         summary = json.loads((out / "summary.json").read_text())
     except (OSError, ValueError) as exc:
@@ -243,7 +249,7 @@ def _disagreement(work: Path, d: Path) -> str:
 # ---- command paths and values -------------------------------------------------------------------------
 
 
-def path_cases(work: Path, quick: bool) -> list[Case]:
+def path_cases(lab_main: LabMain, work: Path, quick: bool) -> list[Case]:
     d = work / "paths"
     d.mkdir(parents=True, exist_ok=True)
     f = d / "a-file"
@@ -272,28 +278,28 @@ def path_cases(work: Path, quick: bool) -> list[Case]:
         argvs = {k: v for k, v in argvs.items() if k in ("calibrate rig --out under a file",
                                                          "calibrate rig --run-dir a file", "run borg --speedup 1e-9")}
     return [Case(f"input-meaning/paths/{name}", f"exit 2 naming {names} before anything moves",
-                 lambda a=argv, n=names: _one_line(a, n, within_s=QUICK_BEFORE_MOTION_S))
+                 lambda a=argv, n=names: _one_line(lab_main, a, n, within_s=QUICK_BEFORE_MOTION_S))
             for name, (argv, names) in argvs.items()]
 
 
 # ---- catalogue and review -------------------------------------------------------------------------------
 
 
-def _reference_run(work: Path) -> Path:
+def _reference_run(lab_main: LabMain, work: Path) -> Path:
     """One short BORG run to damage copies of (made once)."""
     out = work / "catalogue" / "reference"
     if not (out / "summary.json").exists():
         shutil.rmtree(out, ignore_errors=True)
-        code, _, err = _main(["run", "borg", *FAST, "--modules", "2", "--no-rig-survey", "--out", str(out)])
+        code, _, err = _main(lab_main, ["run", "borg", *FAST, "--modules", "2", "--no-rig-survey", "--out", str(out)])
         if code != 0:
             raise RuntimeError(f"the reference run failed: exit {code}: {err.strip()[-300:]}")
     return out
 
 
-def _root_with(work: Path, name: str, damage: Callable[[Path], None]) -> Path:
+def _root_with(lab_main: LabMain, work: Path, name: str, damage: Callable[[Path], None]) -> Path:
     root = work / "catalogue" / f"root-{name.replace(' ', '_')}"
     shutil.rmtree(root, ignore_errors=True)
-    shutil.copytree(_reference_run(work), root / "a")
+    shutil.copytree(_reference_run(lab_main, work), root / "a")
     damage(root / "a")
     return root
 
@@ -323,12 +329,13 @@ def _listing(root: Path, must: str, within_s: float) -> str:
     return ""
 
 
-def catalogue_cases(work: Path, quick: bool) -> list[Case]:
+def catalogue_cases(lab_main: LabMain, work: Path, quick: bool) -> list[Case]:
     cases: list[Case] = []
 
     def show(name: str, damage: Callable[[Path], None], names: str) -> Case:
         return Case(f"input-meaning/catalogue/runs show: {name}", f"exit 2, one line naming {names}",
-                    lambda: _one_line(["runs", "show", "a", "--root", str(_root_with(work, name, damage))], names))
+                    lambda: _one_line(lab_main, ["runs", "show", "a", "--root",
+                                                 str(_root_with(lab_main, work, name, damage))], names))
 
     cases.append(show("modules without names", _summary_edit(lambda s: [m.pop("name") for m in s["modules"]]),
                       "modules[0].name"))
@@ -346,7 +353,7 @@ def catalogue_cases(work: Path, quick: bool) -> list[Case]:
         sub.mkdir(parents=True)
         os.mkfifo(sub / "run.mcap")
     cases.append(Case("input-meaning/catalogue/lab runs with a FIFO named run.mcap", "the listing ends; the FIFO skipped",
-                      lambda: _listing(_root_with(work, "fifo", fifo), "completed", 20.0)))
+                      lambda: _listing(_root_with(lab_main, work, "fifo", fifo), "completed", 20.0)))
 
     def padded(run: Path) -> None:
         data = (run / "run.mcap").read_bytes()
@@ -357,14 +364,14 @@ def catalogue_cases(work: Path, quick: bool) -> list[Case]:
         p.mkdir()
         (p / "run.mcap").write_bytes(data[:pos] + bytes(32 * 2 ** 20))
     cases.append(Case("input-meaning/catalogue/lab runs with a run.mcap cut and padded with 32 MB of zeros",
-                      "listed as killed within seconds", lambda: _listing(_root_with(work, "padded", padded), "killed",
-                                                                           8.0)))
-    mcap = lambda: str(_reference_run(work) / "run.mcap")          # noqa: E731
+                      "listed as killed within seconds",
+                      lambda: _listing(_root_with(lab_main, work, "padded", padded), "killed", 8.0)))
+    mcap = lambda: str(_reference_run(lab_main, work) / "run.mcap")          # noqa: E731
     cases.append(Case("input-meaning/catalogue/review --save DIR", "exit 2, one line naming --save",
-                      lambda: _one_line(["review", mcap(), "--save", str(work)], "--save")))
+                      lambda: _one_line(lab_main, ["review", mcap(), "--save", str(work)], "--save")))
     for url in (("http://[::1", "rerun+http://[bad/proxy", "host:99999") if not quick else ("http://[::1",)):
         cases.append(Case(f"input-meaning/catalogue/review --connect {url}", "exit 2, one line naming --connect",
-                          lambda u=url: _one_line(["review", mcap(), "--connect", u], "--connect")))
+                          lambda u=url: _one_line(lab_main, ["review", mcap(), "--connect", u], "--connect")))
     return cases
 
 
@@ -462,7 +469,8 @@ def ctrl_c_cases(quick: bool) -> list[Case]:
             + [Case("input-meaning/ctrl-c/one", "the pause is requested", lambda: _ctrl_c(1, "pause"))])
 
 
-def cases(work: Path, quick: bool) -> list[Case]:
-    """Every case of the section, in order."""
-    return (calibration_cases(work, quick) + path_cases(work, quick) + catalogue_cases(work, quick)
+def cases(work: Path, quick: bool, lab_main: LabMain) -> list[Case]:
+    """Every case of the section, in order (`lab_main`: the CLI's entry point, `lab.cli.main`)."""
+    return (calibration_cases(lab_main, work, quick) + path_cases(lab_main, work, quick)
+            + catalogue_cases(lab_main, work, quick)
             + journal_cases(work, quick) + ctrl_c_cases(quick))
