@@ -7,6 +7,8 @@ from __future__ import annotations
 import argparse
 import importlib
 
+from lab.cli import LabParser
+
 BENCHES: dict[str, tuple[str, str]] = {
     # name: (module, one-line help)
     "slam": ("procedures.studies.bench_slam", "GraphSLAM vs SF-GraphSLAM vs the paper's Powell method (Monte Carlo)"),
@@ -24,19 +26,46 @@ BENCHES: dict[str, tuple[str, str]] = {
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="run a benchmark and print its figures")
-    bench_sub = p.add_subparsers(dest="bench", metavar="NAME")
+    bench_sub = p.add_subparsers(dest="bench", metavar="NAME", parser_class=_StudyParser)
     bench_sub.required = True
     for name, (module_name, help_text) in BENCHES.items():
         bp = bench_sub.add_parser(name, help=help_text)
+        bp.study = (name, module_name)
         bp.set_defaults(func=_runner(module_name), _bench_parser=bp, lab_main=_lab_main)
+
+
+class _StudyParser(LabParser):
+    """The parser of `lab bench NAME`: the study's own flags are added when this parser is first
+    used (`lab bench NAME ...`), so the study is imported only when its command runs and `lab
+    --help` imports no study."""
+
+    study: tuple[str, str] | None = None
+
+    def _load_study(self) -> None:
+        if self.study is None:
+            return
+        name, module_name = self.study
+        self.study = None
         try:
             module = importlib.import_module(module_name)
         except ModuleNotFoundError as exc:
             if exc.name != module_name:
                 raise
-            bp.set_defaults(func=_missing(name))
-            continue
-        module.add_arguments(bp)
+            self.set_defaults(func=_missing(name))
+            return
+        module.add_arguments(self)
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        self._load_study()
+        return super().parse_known_args(args, namespace)
+
+    def format_help(self) -> str:
+        self._load_study()
+        return super().format_help()
+
+    def format_usage(self) -> str:
+        self._load_study()
+        return super().format_usage()
 
 
 def _runner(module_name: str):
