@@ -5,7 +5,7 @@ tests/test_reliability_runs.py)."""
 from __future__ import annotations
 
 from lab.cli import main
-from procedures.studies.bench_faults import campaign
+from lab.studies.bench_faults import campaign
 
 
 def test_the_quick_slice_of_the_fault_campaign_has_no_bad_case(tmp_path):

@@ -5,8 +5,8 @@ reported bad (the section can fail)."""
 from __future__ import annotations
 
 from lab.cli import main
-from procedures.studies import bench_faults_inputs as section
-from procedures.studies.bench_faults import SECTIONS, campaign
+from lab.studies import bench_faults_inputs as section
+from lab.studies.bench_faults import SECTIONS, campaign
 
 
 def test_the_quick_slice_of_the_input_meaning_section_has_no_bad_case(tmp_path):

@@ -149,7 +149,7 @@ def test_a_lock_held_by_one_user_refuses_another():
     directory), and the refusal names the holding user."""
     import pwd
 
-    from procedures.studies.bench_faults_links import _as_user
+    from lab.studies.bench_faults_links import _as_user
 
     nobody = pwd.getpwnam("nobody").pw_uid
     url = "socket://127.0.0.1:6"

@@ -196,7 +196,7 @@ def test_ctrl_c_on_worker_processes_keeps_finished_trials(tmp_path):
 def test_mle_study_identical_in_process_on_workers_and_on_dask():
     """The issue's test: a small study under every executor, the same figures apart from timings."""
     distributed = pytest.importorskip("distributed", reason="Dask is the `distributed` extra")
-    from procedures.studies import bench_mle
+    from lab.studies import bench_mle
     from lab.executor import DaskCluster
 
     def run(executor) -> dict:

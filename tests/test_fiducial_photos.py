@@ -140,7 +140,7 @@ def test_apriltag3_corners_converted_land_on_the_rendered_truth():
     counter-clockwise; OpenCV 4's marker is AprilTag's image turned 180 deg.  Converted, its corners
     must match the renderer's projected truth, corner for corner."""
     pytest.importorskip("pupil_apriltags")
-    from procedures.studies import apriltag3
+    from lab.studies import apriltag3
     from lab.geometry import Pose3, Rot3
     from sim_devices.render import render_tags, tag_corners_px
 

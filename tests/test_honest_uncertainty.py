@@ -140,7 +140,7 @@ def test_a_run_on_a_poor_camera_keeps_its_verdicts_right_and_its_sigma_honest(tm
     import subprocess
     import sys
 
-    from procedures.studies.bench_trust import CAMERAS
+    from lab.studies.bench_trust import CAMERAS
 
     sc = tmp_path / "poor.toml"
     sc.write_text('seed = 5\n\n[[borg.fault]]\nkind = "module_offset"\nmodule = "5D"\noffset_m = [0.0, 0.008, 0.0]\n\n'

@@ -14,7 +14,7 @@ import pytest
 from lab.errors import UserError
 from lab.executor import Journal, make_trials
 from lab.executor.journal import finite_values
-from procedures.studies.bench_common import run_trial_study
+from lab.studies.bench_common import run_trial_study
 
 
 def double(trial):                      # a study's trial function (module level: workers import it)

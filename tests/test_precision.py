@@ -79,7 +79,7 @@ def test_the_bound_of_a_small_survey_is_the_information_model_and_the_estimators
 
 
 def test_a_planned_survey_meets_its_sigma_target():
-    from procedures.studies.bench_precision import PrecisionSetup, trial
+    from lab.studies.bench_precision import PrecisionSetup, trial
 
     # the first modules, planned for 0.15 mm; the graph's own 1-sigma of each verdict must reach it
     # (within the planner's approximation: views independent, tag at its design pose)

@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from procedures.studies import slam_sim as ss
-from procedures.studies.bench_slam import run_ours
+from lab.studies import slam_sim as ss
+from lab.studies.bench_slam import run_ours
 from estimation.tag_elimination import eliminate_tags
 from lab.geometry import Pose3, Rot3
 from lab.structures.borg import build_borg

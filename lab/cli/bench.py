@@ -11,16 +11,16 @@ from lab.cli import LabParser
 
 BENCHES: dict[str, tuple[str, str]] = {
     # name: (module, one-line help)
-    "slam": ("procedures.studies.bench_slam", "GraphSLAM vs SF-GraphSLAM vs the paper's Powell method (Monte Carlo)"),
-    "fiducials": ("procedures.studies.bench_fiducials", "AprilTag detection time and pose error on rendered images; image "
+    "slam": ("lab.studies.bench_slam", "GraphSLAM vs SF-GraphSLAM vs the paper's Powell method (Monte Carlo)"),
+    "fiducials": ("lab.studies.bench_fiducials", "AprilTag detection time and pose error on rendered images; image "
                                                       "quality (edge spread, noise) of photographs vs the simulator"),
-    "mle": ("procedures.studies.bench_mle", "IPJR sequencing, MLE vs EKF vs open loop"),
-    "run": ("procedures.studies.bench_run", "end-to-end simulated procedure runs (BORG, tetrahelix)"),
-    "calibration": ("procedures.studies.bench_calibration", "BORG verdicts and accuracy against rig-error size, with and "
+    "mle": ("lab.studies.bench_mle", "IPJR sequencing, MLE vs EKF vs open loop"),
+    "run": ("lab.studies.bench_run", "end-to-end simulated procedure runs (BORG, tetrahelix)"),
+    "calibration": ("lab.studies.bench_calibration", "BORG verdicts and accuracy against rig-error size, with and "
                                                     "without rig calibration"),
-    "trust": ("procedures.studies.bench_trust", "verdicts, accuracy and honest 1-sigma against rig-error size and "
+    "trust": ("lab.studies.bench_trust", "verdicts, accuracy and honest 1-sigma against rig-error size and "
                                                 "camera quality"),
-    "faults": ("procedures.studies.bench_faults", "the fault campaign: device faults, kills, signals, bad input, abuse"),
+    "faults": ("lab.studies.bench_faults", "the fault campaign: device faults, kills, signals, bad input, abuse"),
 }
 
 

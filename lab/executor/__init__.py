@@ -1,6 +1,6 @@
 """Trials of a study through an executor: this process, local worker processes, or a Dask cluster.
 
-A bench wires it in like this (procedures/studies/bench_mle.py and procedures/studies/bench_calibration.py do):
+A bench wires it in like this (lab/studies/bench_mle.py and lab/studies/bench_calibration.py do):
 
     from lab.executor import Study, Trial, add_executor_arguments, make_trials, open_study
 

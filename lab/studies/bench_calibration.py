@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from lab.executor import Trial, add_executor_arguments
-from procedures.studies.bench_common import report_study, run_trial_study
+from lab.studies.bench_common import report_study, run_trial_study
 
 # Faults among the first 9 modules, so --quick sees them all: a partial deployment and a 15 mm
 # offset must be flagged, a displaced tag rejected (its module unverified), a 2 mm offset passed.
@@ -95,7 +95,7 @@ def _scenario(seed: int, scale: float) -> str:
 
 
 def trial(out: Path, seed: int, scale: float, mode: str, modules: int, speedup: float) -> dict[str, Any]:
-    from procedures.studies.bench_run import _median_metric
+    from lab.studies.bench_run import _median_metric
 
     d = out / f"{mode}-x{scale:g}-seed{seed}"
     sc = out / f"scenario-x{scale:g}-seed{seed}.toml"

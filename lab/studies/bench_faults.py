@@ -18,7 +18,7 @@ were tried, how many ended as expected, and names every one that did not.  Secti
              second is refused naming the device or directory and its holder; the first is unharmed;
 - links:     one owner per device whatever its spelling, environment or user; devices that stop when
              their host goes (or finish, on an older firmware), and `lab resume` after either
-             (procedures/studies/bench_faults_links.py).
+             (lab/studies/bench_faults_links.py).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from procedures.studies.bench_faults_links import link_cases
+from lab.studies.bench_faults_links import link_cases
 
 LAB = [sys.executable, "-m", "lab"]
 ROOT = Path(__file__).resolve().parents[2]
@@ -770,8 +770,8 @@ def sharing_cases(work: Path, quick: bool) -> list[Case]:
 
 
 SECTIONS = ("devices", "kill", "signals", "inputs", "protocol", "sharing",
-            "links",           # procedures/studies/bench_faults_links.py
-            "input-meaning")   # procedures/studies/bench_faults_inputs.py
+            "links",           # lab/studies/bench_faults_links.py
+            "input-meaning")   # lab/studies/bench_faults_inputs.py
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -782,7 +782,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _input_meaning_cases(lab_main: Callable[[list[str]], Any], work: Path, quick: bool) -> list[Any]:
-    from procedures.studies.bench_faults_inputs import cases
+    from lab.studies.bench_faults_inputs import cases
 
     return cases(work, quick, lab_main)
 

@@ -1,5 +1,5 @@
 """`lab bench faults --only input-meaning`: the cases of issue 22, items 3-7, as the campaign's
-section (procedures/studies/bench_faults.py runs it like the others).
+section (lab/studies/bench_faults.py runs it like the others).
 
 - calibration:  a rig calibration file (the survey's own, from a short `lab calibrate rig`) with
                 one value no survey of this bench could give -- a negative or zero focal length, a
@@ -388,7 +388,7 @@ def _journal_case(work: Path, name: str, edit: Callable[[str], str], must: str) 
 
     from lab.errors import UserError
     from lab.executor import Journal, make_trials
-    from procedures.studies.bench_common import run_trial_study
+    from lab.studies.bench_common import run_trial_study
 
     out = work / "journal" / name.replace(" ", "_")
     shutil.rmtree(out, ignore_errors=True)

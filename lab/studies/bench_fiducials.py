@@ -35,8 +35,8 @@ import math
 import os
 import time
 
-from procedures.studies.bench_common import save_figure
-from procedures.studies.fiducial_scenes import _camera, random_tag_pose, tag_pose_on_ray, twenty_tag_frames
+from lab.studies.bench_common import save_figure
+from lab.studies.fiducial_scenes import _camera, random_tag_pose, tag_pose_on_ray, twenty_tag_frames
 
 DISTANCES_M = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 MAX_VIEW_ANGLE_DEG = 60.0
@@ -182,8 +182,8 @@ def timing_study(frames: int, seed: int) -> dict:
 
 # ---- output -------------------------------------------------------------------------------------
 def _markdown(res: dict, command: str) -> str:
-    from procedures.studies import bench_fiducials_corners as corners
-    from procedures.studies import bench_fiducials_photos as photos
+    from lab.studies import bench_fiducials_corners as corners
+    from lab.studies import bench_fiducials_photos as photos
 
     acc, tim = res["accuracy"], res["timing"]
     lines = [f"`{command}` ({res['elapsed_s']:.0f} s)", ""]
@@ -241,8 +241,8 @@ def _plots(res: dict, out_dir: str) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from procedures.studies import bench_fiducials_corners as corners
-    from procedures.studies import bench_fiducials_photos as photos
+    from lab.studies import bench_fiducials_corners as corners
+    from lab.studies import bench_fiducials_photos as photos
 
     quick = bool(getattr(args, "quick", False))
     seed = int(getattr(args, "seed", 0) or 0)

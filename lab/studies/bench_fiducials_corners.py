@@ -31,7 +31,7 @@ TILT_DISTANCE_M = 2.0
 
 
 def _camera():
-    from procedures.studies.fiducial_scenes import _camera as cam
+    from lab.studies.fiducial_scenes import _camera as cam
 
     return cam()
 
@@ -42,7 +42,7 @@ def _tag_poses(rng, K, W, H, distance_m: float, angle_rad: float, n: int):
     do not overlap."""
     import numpy as np
 
-    from procedures.studies.fiducial_scenes import tag_pose_on_ray
+    from lab.studies.fiducial_scenes import tag_pose_on_ray
 
     cols = 3
     rows = max(1, math.ceil(n / cols))

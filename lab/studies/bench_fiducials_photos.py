@@ -203,13 +203,13 @@ def _ours():
 
 
 def _apriltag3(decimate: float = 1.0):
-    from procedures.studies import apriltag3
+    from lab.studies import apriltag3
 
     return lambda g: [(d.tag_id, d.corners_px) for d in apriltag3.detect(g, decimate)]
 
 
 def _detectors() -> dict[str, Callable]:
-    from procedures.studies import apriltag3
+    from lab.studies import apriltag3
 
     out = {"ours": _ours()}
     if apriltag3.available():
@@ -273,7 +273,7 @@ def _border_pose(rng, K, dist, W: int, H: int, size: float, edge: int):
     outermost corner within the edge pixel, the quiet zone beyond the frame."""
     import numpy as np
 
-    from procedures.studies.fiducial_scenes import tag_pose_on_ray
+    from lab.studies.fiducial_scenes import tag_pose_on_ray
     from sim_devices.render import tag_corners_px
 
     d = rng.uniform(1.2, 2.8)
@@ -295,7 +295,7 @@ def _render_case(rng, K, dist, W, H, noise, blur, case: str, n: int):
     import cv2
     import numpy as np
 
-    from procedures.studies.fiducial_scenes import tag_pose_on_ray
+    from lab.studies.fiducial_scenes import tag_pose_on_ray
     from sim_devices.render import render_tags, tag_corners_px
 
     size = 0.10
@@ -331,7 +331,7 @@ def render_study(frames: int, seed: int) -> dict:
     turned at random about it (any in-plane rotation), per degradation case."""
     import numpy as np
 
-    from procedures.studies.fiducial_scenes import _camera
+    from lab.studies.fiducial_scenes import _camera
 
     K, dist, W, H, noise, blur = _camera()
     dets = _detectors()
@@ -357,8 +357,8 @@ def timing_study(frames: int, seed: int) -> dict:
     them alike; wall clock and the process's CPU time (less disturbed by other jobs on the cores)."""
     import numpy as np
 
-    from procedures.studies import apriltag3
-    from procedures.studies.fiducial_scenes import _camera, twenty_tag_frames
+    from lab.studies import apriltag3
+    from lab.studies.fiducial_scenes import _camera, twenty_tag_frames
     from estimation.fiducials import TagDetector
 
     K, dist, W, H, noise, blur = _camera()
@@ -447,11 +447,11 @@ def sim_default_frames(n: int = len(SIM_TURNTABLE_DEG)) -> list:
 
 
 def quality_study(quick: bool = False, photo_dir: str = PHOTO_DIR) -> dict:
-    """Edge spread and flat-area noise (procedures/studies/image_quality.py) of every photograph
+    """Edge spread and flat-area noise (lab/studies/image_quality.py) of every photograph
     in tests/data/photos and of the default simulated frames, tags >= 20 px a side."""
     import cv2
 
-    from procedures.studies import image_quality as iq
+    from lab.studies import image_quality as iq
 
     det = iq._detector()
     rows = []

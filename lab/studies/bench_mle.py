@@ -31,7 +31,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from procedures.studies.bench_common import save_figure
+from lab.studies.bench_common import save_figure
 from lab.executor import Study, Trial, add_executor_arguments, make_trials, open_study, trial_seed
 
 SIGMA_L_PAPER = math.sqrt(3.57e-7)

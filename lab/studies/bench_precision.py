@@ -50,7 +50,7 @@ class PrecisionSetup:
 
 def _pool(model, face: int) -> list:
     """Candidate cameras around a face: turntable offsets x platform pitches."""
-    from procedures.studies import slam_sim as ss
+    from lab.studies import slam_sim as ss
 
     return [ss.rig_camera(model, math.radians(90.0 * (face - 1) + da), math.radians(p))
             for da in (-30, -24, -18, -12, -6, 0, 6, 12, 18, 24, 30) for p in (-8.0, 0.0, 8.0)]
@@ -61,7 +61,7 @@ def _sight(rng, K, cam_true, cam_reported, truth, tags, model, setup: PrecisionS
     """Detections (drawn corners) of the `tags` visible from the true camera.  With
     `occlusion_overlap`, a tag a nearer one hides (the survey planner's rule, `survey.unoccluded`)
     is not seen; without it the camera sees through the structure."""
-    from procedures.studies import slam_sim as ss
+    from lab.studies import slam_sim as ss
     from procedures.survey import unoccluded
     from estimation.fiducials import Detection, tag_object_points
     from estimation.rig_model import MIN_SIDE_RATIO, OBLIQUE_EXPONENT
@@ -115,7 +115,7 @@ def trial(kind: str, size: float, target: str, seed: int, setup: PrecisionSetup,
     """One assembly with one deviated target; returns per-module verdicts and errors."""
     import gtsam
 
-    from procedures.studies import slam_sim as ss
+    from lab.studies import slam_sim as ss
     from estimation.precision import (bound_covariances, covariance_from_information, module_sigma,
                                       view_information)
     from estimation.fiducials import tag_object_points
@@ -308,7 +308,7 @@ def solve_times(seed: int, observation: str, setup: PrecisionSetup | None = None
     its initial values (min over `repeats`)."""
     import time
 
-    from procedures.studies import slam_sim as ss
+    from lab.studies import slam_sim as ss
     from estimation.sf_graphslam import SfGraphSlam, SlamConfig
     from lab.geometry import Pose3, Rot3
     from lab.structures.borg import build_borg

@@ -29,7 +29,7 @@ OCCLUSION = 0.25        # survey.SurveyConfig.occlusion_overlap
 
 def _cameras(model, module) -> list:
     """Three views of a module's first tag: face-on and 0.8 m either side along the face, 2.2 m out."""
-    from procedures.studies import slam_sim as ss
+    from lab.studies import slam_sim as ss
 
     tag = model.tags[module.tags[0]].structure_T_tag
     R = tag.rotation().matrix()
@@ -39,8 +39,8 @@ def _cameras(model, module) -> list:
 def measure(n: int, observation: str, seed: int) -> dict:
     import gtsam
 
-    from procedures.studies import slam_sim as ss
-    from procedures.studies.bench_precision import PrecisionSetup, _sight
+    from lab.studies import slam_sim as ss
+    from lab.studies.bench_precision import PrecisionSetup, _sight
     from estimation.sf_graphslam import SfGraphSlam, SlamConfig
     from lab.geometry import Pose3, Rot3
     from lab.structures.borg import build_borg
@@ -140,7 +140,7 @@ def plot(res: dict, out_dir: str) -> str | None:
         import matplotlib.pyplot as plt
     except ImportError:
         return None
-    from procedures.studies.bench_common import save_figure
+    from lab.studies.bench_common import save_figure
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     for obs, rows in res["rows"].items():

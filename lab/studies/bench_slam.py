@@ -1,5 +1,5 @@
 """`lab bench slam`: GraphSLAM vs SF-GraphSLAM (ours, GTSAM) vs the paper's own method (Powell),
-Monte Carlo on synthetic surveys with the paper's noise (procedures/studies/slam_sim.py).
+Monte Carlo on synthetic surveys with the paper's noise (lab/studies/slam_sim.py).
 
 Studies (the paper's §3 plus two of ours):
 - deployable        module 2D's two tags from three camera positions (§3.1, Table 2)
@@ -35,7 +35,7 @@ import math
 import os
 import time
 
-from procedures.studies.bench_common import save_figure
+from lab.studies.bench_common import save_figure
 
 STUDIES = ("deployable", "closeout_strut", "closeout_square", "partial_deploy", "borg_face1", "tag_elimination",
            "borg_full", "borg_full_rendered", "verification", "precision", "scaling")
@@ -133,7 +133,7 @@ class _Acc:
 
 def _slam_config(semantic: bool, noise=None):
     from estimation.sf_graphslam import SlamConfig
-    from procedures.studies.slam_sim import PaperNoise
+    from lab.studies.slam_sim import PaperNoise
 
     n = noise or PaperNoise()
     return SlamConfig(semantic=semantic, camera_sigma_m=n.camera_sigma_m, camera_sigma_rad=n.camera_sigma_rad)
@@ -174,7 +174,7 @@ def _ours(acc: dict, survey, semantic: bool) -> object:
 
 def _paper(acc: dict, survey, semantic: bool, *, powell: bool = True, gtsam: bool = True, exact: bool = False,
            suffix: str = "") -> dict:
-    from procedures.studies import paper_baseline as pb
+    from lab.studies import paper_baseline as pb
 
     p = pb.problem_from_survey(survey, semantic=semantic)
     out = {}
@@ -212,7 +212,7 @@ def study_pair(kind: str, trials: int, seed: int) -> dict:
     """deployable / closeout_strut / closeout_square / partial_deploy: two tags, three camera positions."""
     import numpy as np
 
-    from procedures.studies import slam_sim as ss
+    from lab.studies import slam_sim as ss
     from lab.structures.borg import build_borg
 
     model = build_borg()
@@ -249,8 +249,8 @@ def study_pair(kind: str, trials: int, seed: int) -> dict:
 def study_borg_face1(trials: int, seed: int, literal_trials: int) -> tuple[dict, dict]:
     import numpy as np
 
-    from procedures.studies import paper_baseline as pb
-    from procedures.studies import slam_sim as ss
+    from lab.studies import paper_baseline as pb
+    from lab.studies import slam_sim as ss
     from lab.structures.borg import build_borg
 
     model = build_borg()
@@ -331,7 +331,7 @@ def study_borg_face1(trials: int, seed: int, literal_trials: int) -> tuple[dict,
 def study_tag_elimination(trials: int, seed: int) -> dict:
     import numpy as np
 
-    from procedures.studies import slam_sim as ss
+    from lab.studies import slam_sim as ss
     from estimation.tag_elimination import eliminate_tags
     from lab.structures.borg import build_borg
 
@@ -367,7 +367,7 @@ def study_borg_full(trials: int, seed: int) -> tuple[dict, dict]:
     """All 48 tags, batch; then the incremental (iSAM2) assembly of the whole cube, step by step."""
     import numpy as np
 
-    from procedures.studies import slam_sim as ss
+    from lab.studies import slam_sim as ss
     from estimation.sf_graphslam import SfGraphSlam
     from lab.structures.borg import build_borg
 
@@ -429,7 +429,7 @@ def study_borg_full(trials: int, seed: int) -> tuple[dict, dict]:
 def study_borg_full_rendered(trials: int, seed: int) -> dict:
     import numpy as np
 
-    from procedures.studies import slam_sim as ss
+    from lab.studies import slam_sim as ss
     from lab.structures.borg import build_borg
 
     model = build_borg()
@@ -467,7 +467,7 @@ def _verify_run(model, modules, sv, semantic: bool, after_tie: bool = False) -> 
     snapshot.  `after_tie` verifies on the estimate after the module's own semantic factors joined
     instead (the counterfactual that shows why the snapshot matters)."""
     from estimation.sf_graphslam import SfGraphSlam
-    from procedures.studies.slam_sim import RigNoise
+    from lab.studies.slam_sim import RigNoise
     from estimation.tag_elimination import eliminate_tags
     from estimation.verification import verify_module
 
@@ -494,7 +494,7 @@ def _verify_run(model, modules, sv, semantic: bool, after_tie: bool = False) -> 
 def study_verification(trials: int, seed: int) -> dict:
     import numpy as np
 
-    from procedures.studies import slam_sim as ss
+    from lab.studies import slam_sim as ss
     from lab.structures.borg import build_borg
 
     model = build_borg()
@@ -557,12 +557,12 @@ def study_precision(trials: int, seed: int, args: argparse.Namespace) -> dict:
 
 
 def _study_precision(trials: int, seed: int, args: argparse.Namespace, runner) -> dict:
-    """Verdicts near the tolerance and accuracy against the bound (procedures/studies/bench_precision.py),
+    """Verdicts near the tolerance and accuracy against the bound (lab/studies/bench_precision.py),
     at the default tolerance and at 1 mm / 0.2 deg."""
     import math
     from dataclasses import replace
 
-    from procedures.studies import bench_precision as bp
+    from lab.studies import bench_precision as bp
     from lab.errors import UserError
 
     setup = bp.PrecisionSetup()
@@ -639,13 +639,13 @@ def to_markdown(res: dict) -> str:
                      f"GraphSLAM {v['graphslam']['trans_rmse_m'] * 1000:.2f} mm.")
         lines.append("")
     if "scaling" in studies:
-        from procedures.studies.bench_scaling import markdown as scaling_md
+        from lab.studies.bench_scaling import markdown as scaling_md
 
         lines.append("#### scaling: SF-GraphSLAM cost against structure size")
         lines.append("")
         lines.extend(scaling_md(studies["scaling"]))
     if "precision" in studies:
-        from procedures.studies.bench_precision import markdown as precision_md
+        from lab.studies.bench_precision import markdown as precision_md
 
         lines.append("#### precision: verdicts near the tolerance, accuracy against the bound (corner model)")
         lines.append("")
@@ -760,7 +760,7 @@ def _plots(res: dict, out_dir: str) -> list[str]:
     files = []
     st = res["studies"]
     if "scaling" in st:
-        from procedures.studies.bench_scaling import plot as scaling_plot
+        from lab.studies.bench_scaling import plot as scaling_plot
 
         f = scaling_plot(st["scaling"], out_dir)
         if f:
@@ -866,7 +866,7 @@ def run(args: argparse.Namespace) -> int:
         elif study == "precision":
             res["studies"][study] = study_precision(n(study), args.seed, args)
         elif study == "scaling":
-            from procedures.studies import bench_scaling
+            from lab.studies import bench_scaling
 
             sizes = (3, 4, 5) if args.quick else bench_scaling.SIZES
             res["studies"][study] = bench_scaling.study(sizes, seed=args.seed, max_corner_n=4 if args.quick else 5)

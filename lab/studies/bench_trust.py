@@ -36,7 +36,7 @@ import numpy as np
 
 from lab.executor import Trial, add_executor_arguments
 from lab.imaging import IDEAL, scenario_tables
-from procedures.studies.bench_common import report_study, run_trial_study
+from lab.studies.bench_common import report_study, run_trial_study
 
 # A scenario's [camera] and [tags] for each camera quality (omitted keys keep the rig's defaults).
 CAMERAS: dict[str, str] = {
@@ -99,7 +99,7 @@ def scenario(seed: int, scale: float, camera: str) -> str:
 
 
 def trial(out: Path, seed: int, scale: float, camera: str, modules: int, speedup: float) -> dict[str, Any]:
-    from procedures.studies.bench_run import _median_metric
+    from lab.studies.bench_run import _median_metric
 
     d = out / f"{camera}-x{scale:g}-seed{seed}"
     sc = out / f"scenario-{camera}-x{scale:g}-seed{seed}.toml"

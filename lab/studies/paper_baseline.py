@@ -212,7 +212,7 @@ def semantic_terms(obs_by_t: Sequence[Sequence[int]], tags: Sequence[int], relat
 def problem_from_survey(survey, *, semantic: bool, semantic_op: Literal["add", "compose"] = "add",
                         alg8: Literal["eq27", "literal"] = "eq27", exclude_pairs: Sequence[tuple[int, int]] = (),
                         Q: np.ndarray = Q_PAPER, R: np.ndarray = R_PAPER, S: np.ndarray = S_PAPER) -> PaperProblem:
-    """The paper's problem for a `procedures.studies.slam_sim.Survey`: state frame = first reported camera."""
+    """The paper's problem for a `lab.studies.slam_sim.Survey`: state frame = first reported camera."""
     model = survey.model
     views = survey.views
     tags = tuple(t for t in survey.tags if any(o.tag == t for v in views for o in v.observations))
