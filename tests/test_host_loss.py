@@ -16,7 +16,7 @@ import pytest
 
 import drivers
 from drivers.testing import fast_sim_rig
-from lab.config import RigError, default_rig_path, load_rig
+from lab.core.config import RigError, default_rig_path, load_rig
 from sim_devices.bench import start_sim_bench
 from sim_devices.watchdog import WATCHDOG_S, Firmware
 

@@ -11,8 +11,8 @@ import pytest
 
 from lab.studies import paper_baseline as pb
 from lab.studies import slam_sim as ss
-from lab.geometry import Pose3, from_xyzrpy, pose_error, to_xyzrpy
-from lab.structures.borg import build_borg
+from lab.core.geometry import Pose3, from_xyzrpy, pose_error, to_xyzrpy
+from lab.core.structures.borg import build_borg
 
 
 @pytest.fixture(scope="module")

@@ -18,8 +18,8 @@ from estimation.fiducials import Detection, tag_object_points
 from estimation.precision import bound_covariances, covariance_from_information, module_sigma, view_information
 from estimation.rig_model import OBLIQUE_EXPONENT
 from estimation.sf_graphslam import C, SfGraphSlam, SlamConfig
-from lab.geometry import Pose3, Rot3, look_at
-from lab.structures.borg import build_borg
+from lab.core.geometry import Pose3, Rot3, look_at
+from lab.core.structures.borg import build_borg
 
 LAB = [sys.executable, "-m", "lab"]
 K = np.array([[914.0, 0.0, 639.5], [0.0, 914.0, 359.5], [0.0, 0.0, 1.0]])

@@ -17,8 +17,8 @@ import pytest
 from lab.studies import bench_slam
 from lab.studies import slam_sim as ss
 from estimation.sf_graphslam import SfGraphSlam
-from lab.errors import UserError
-from lab.structures.borg import build_borg
+from lab.core.errors import UserError
+from lab.core.structures.borg import build_borg
 
 REQUIRED = {"trans_rmse_m", "rot_rmse_rad", "offset_trans_rmse_m", "offset_rot_rmse_rad", "solve_s"}
 
@@ -65,7 +65,7 @@ def test_the_full_survey_sees_every_tag_at_least_twice(model):
 def test_a_rendered_survey_is_measured_by_the_real_detector(model):
     """slam_sim.measure_rendered: the views rendered from the true camera, read by TagDetector (with
     the reported camera predicting the tags), and SF-GraphSLAM on what it found."""
-    from lab.geometry import pose_error
+    from lab.core.geometry import pose_error
 
     rng = np.random.default_rng(5)
     tags = [0, 1, 2, 9]

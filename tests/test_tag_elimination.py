@@ -13,8 +13,8 @@ import pytest
 from lab.studies import slam_sim as ss
 from lab.studies.bench_slam import run_ours
 from estimation.tag_elimination import eliminate_tags
-from lab.geometry import Pose3, Rot3
-from lab.structures.borg import build_borg
+from lab.core.geometry import Pose3, Rot3
+from lab.core.structures.borg import build_borg
 
 
 @pytest.fixture(scope="module")

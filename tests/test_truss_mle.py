@@ -11,7 +11,7 @@ from estimation.truss_fusion import TrussCameraMLE
 from estimation.truss_geometry import Plan, orient_base
 from estimation.truss_mle import TrussMLE
 from estimation.truss_simulation import monte_carlo, simulate_assembly
-from lab.structures.trusses import build_truss
+from lab.core.structures.trusses import build_truss
 
 SL, SM = np.sqrt(3.57e-7), np.sqrt(6.25e-8)
 

@@ -85,7 +85,7 @@ def _lab_main(argv: list[str]) -> int:
 
 def _missing(name: str):
     def run(args: argparse.Namespace) -> int:
-        from lab.errors import UserError
+        from lab.core.errors import UserError
 
         raise UserError(f"benchmark {name!r} is not available in this build")
 

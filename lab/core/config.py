@@ -20,10 +20,10 @@ from typing import Any, Iterator, Literal
 
 import numpy as np
 
-from lab.errors import UserError
-from lab.geometry import Pose3, from_xyzrpy
-from lab import rig_error as rig_errors   # the record is RigError too, like this module's exception
-from lab.imaging import RIG_CAMERA_KEYS, Imaging, parse_imaging
+from lab.core.errors import UserError
+from lab.core.geometry import Pose3, from_xyzrpy
+from lab.core import rig_error as rig_errors   # the record is RigError too, like this module's exception
+from lab.core.imaging import RIG_CAMERA_KEYS, Imaging, parse_imaging
 
 DeviceKind = Literal["turntable", "stewart", "lift", "camera", "ipjr"]
 
@@ -126,7 +126,7 @@ class SimConfig:
     ipjr: dict[str, float] = field(default_factory=dict)
     lift: dict[str, float] = field(default_factory=dict)
     rig_error: rig_errors.RigError = field(default_factory=rig_errors.RigError)   # the true bench vs this file
-    imaging: Imaging = field(default_factory=Imaging)   # [sim.camera] / [sim.tags] imaging keys (lab/imaging.py)
+    imaging: Imaging = field(default_factory=Imaging)   # [sim.camera] / [sim.tags] imaging keys (lab/core/imaging.py)
     # what the simulated firmware does when its host goes (docs/protocols.md §1): stop a motion when
     # no request came for watchdog_s (wall clock; 0 = no watchdog), and when the link that
     # commanded it closes.  0 / false: an older firmware that finishes its move whatever happens.
@@ -559,7 +559,7 @@ def _sim(t: _Table) -> SimConfig:
     camera["cx_px"] = cam.number("cx_px", default=(camera["width_px"] - 1) / 2.0)
     camera["cy_px"] = cam.number("cy_px", default=(camera["height_px"] - 1) / 2.0)
     camera["dist"] = cam.vector("dist", n=None, default=[0.0, 0.0, 0.0, 0.0, 0.0])
-    # the imaging keys (lab/imaging.py): omitted ones are the ideal camera's, as before issue 19
+    # the imaging keys (lab/core/imaging.py): omitted ones are the ideal camera's, as before issue 19
     given = parse_imaging({k: cam._get(k, None) for k in RIG_CAMERA_KEYS if k in cam.data},
                           t._get("tags", {}), lambda key, problem: t.error(key, problem),
                           camera_keys=RIG_CAMERA_KEYS)

@@ -1,5 +1,5 @@
 """The live view of `lab run ... --view`: the run in Rerun as it happens, drawn by the same code
-as `lab review` (lab.review's `_Review`), so the live picture and the picture afterwards are one.
+as `lab review` (lab.core.review's `_Review`), so the live picture and the picture afterwards are one.
 
 The recorder hands every message it writes to `LiveView.feed` (RunRecorder.add_listener), which
 only queues it: the drawing and the sending happen on a thread of their own, so a slow viewer
@@ -16,9 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from lab import viewer
-from lab.recorder import topics
-from lab.recorder.reader import RecordedMessage, ScanState
+from lab.core import viewer
+from lab.core.recorder import topics
+from lab.core.recorder.reader import RecordedMessage, ScanState
 
 _STOP = object()
 
@@ -38,7 +38,7 @@ class LiveView:
         `lab review` gives the same run."""
         import rerun as rr
 
-        from lab.review import APPLICATION_ID, _Review, make_blueprint
+        from lab.core.review import APPLICATION_ID, _Review, make_blueprint
 
         self.mode = viewer.choose_mode(None, None if target == "auto" else target, False)
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=f"lab-run-{run_id}")
@@ -70,7 +70,7 @@ class LiveView:
 
     def close(self, run_file: Path, timeout_s: float = 60.0) -> LiveReport:
         """Draw what is still queued, then the run's info document; flush to the viewer."""
-        from lab.recorder.reader import iter_messages
+        from lab.core.recorder.reader import iter_messages
 
         self.queue.put(_STOP)
         self.thread.join(timeout_s)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from lab.errors import UserError
+from lab.core.errors import UserError
 
 
 def _probe(directory: Path, flag: str, path: Path) -> None:

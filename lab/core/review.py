@@ -7,7 +7,7 @@ This adds what the raw channels don't say by themselves:
                        placed by the chain of recorded transforms (resolved here, so the scene does
                        not depend on the viewer's frame handling); data in frame F lives under it.
 - `world/structure/design`   the design structure: nodes, struts, tag outlines with labels and face
-                       normals (from the run's /structure record, else rebuilt with lab.structures
+                       normals (from the run's /structure record, else rebuilt with lab.core.structures
                        from the start record's structure name, e.g. "borg:3", "tetrahelix:20").
 - `world/<frame>/estimate/tags`  estimated tag outlines per step, with error lines to the design.
 - `world/<frame>/estimate/<entity>`  other estimated poses (axes), `world/paths/<name>` their path.
@@ -32,11 +32,11 @@ from typing import Any
 
 import numpy as np
 
-from lab.errors import UserError
-from lab.geometry import Pose3
-from lab.recorder import messages as m
-from lab.recorder import topics
-from lab.recorder.reader import RecordedMessage, ScanState, iter_messages
+from lab.core.errors import UserError
+from lab.core.geometry import Pose3
+from lab.core.recorder import messages as m
+from lab.core.recorder import topics
+from lab.core.recorder.reader import RecordedMessage, ScanState, iter_messages
 
 DESIGN_COLOR = (150, 150, 150)
 TAG_DESIGN_COLOR = (80, 160, 255)
@@ -76,7 +76,7 @@ def design_from_message(msg: Any) -> Design:
 
 
 def design_from_spec(spec: str) -> Design | None:
-    """Rebuild a design from its name with lab.structures: "borg", "borg:N", "borg:N:SPACING",
+    """Rebuild a design from its name with lab.core.structures: "borg", "borg:N", "borg:N:SPACING",
     or a truss name ("tetrahelix:20", "telescope:84").  None if the generators are unavailable."""
     spec = spec.strip()
     if not spec:
@@ -84,7 +84,7 @@ def design_from_spec(spec: str) -> Design | None:
     kind, _, rest = spec.partition(":")
     try:
         if kind == "borg":
-            from lab.structures.borg import build_borg
+            from lab.core.structures.borg import build_borg
 
             parts = [p for p in rest.split(":") if p]
             n = int(parts[0]) if parts else 3
@@ -92,7 +92,7 @@ def design_from_spec(spec: str) -> Design | None:
             tags = {tid: DesignTag(tid, t.structure_T_tag, t.label, t.module, t.size_m) for tid, t in model.tags.items()}
             return Design(spec, "structure", np.asarray(model.nodes, dtype=float), list(model.edges), tags,
                           "lab.structures")
-        from lab.structures.trusses import build_truss
+        from lab.core.structures.trusses import build_truss
 
         model = build_truss(spec)
         return Design(spec, "structure", np.asarray(model.nodes, dtype=float), list(model.edges), {}, "lab.structures")
@@ -186,12 +186,12 @@ class ReviewReport:
     entities: list[str]
     scan: ScanState
     recording_id: str = ""
-    sink: Any = None          # lab.viewer.Sink: where the recording went
+    sink: Any = None          # lab.core.viewer.Sink: where the recording went
 
 
 class _Review:
     def __init__(self, rec: Any, live: bool = False) -> None:
-        """`live`: messages arrive one by one as the run writes them (lab.live), so the design and
+        """`live`: messages arrive one by one as the run writes them (lab.core.live), so the design and
         the image entities are learnt from the messages instead of from a look at the whole file."""
         import rerun as rr
 
@@ -560,14 +560,14 @@ def make_blueprint(image_entities: list[str], entities: set[str] | None = None) 
 
 def review(path: str | Path, save: str | Path | None = None, *, spawn: bool | None = None,
            mode: str | None = None, connect: str | None = None) -> ReviewReport:
-    """Log the run at `path` into Rerun.  `mode` (lab.viewer.choose_mode): "save" writes `save` as an
+    """Log the run at `path` into Rerun.  `mode` (lab.core.viewer.choose_mode): "save" writes `save` as an
     .rrd, "spawn" a local viewer, "web" the web viewer on loopback (the report's `sink.web` is then
     running: the caller keeps it up and stops it), "connect" a running viewer at `connect`, "none"
     nothing (tests of the mapping).  Default: "save" with `save`, else a local viewer where there is
     a display and the web viewer where there is none (spawn=False: "none")."""
     import rerun as rr
 
-    from lab import viewer
+    from lab.core import viewer
 
     src = Path(path)
     scan = ScanState()

@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from lab.errors import UserError
-from lab.geometry import Pose3, from_xyzrpy, to_xyzrpy
-from lab.rig_calibration_check import POSE_UNITS, check_covariance
+from lab.core.errors import UserError
+from lab.core.geometry import Pose3, from_xyzrpy, to_xyzrpy
+from lab.core.rig_calibration_check import POSE_UNITS, check_covariance
 
 FORMAT = "lab.rig_calibration/1"
 POSES = ("platform_T_camera", "world_T_base", "world_T_axis")
@@ -126,7 +126,7 @@ def joint_blocks(turntable_tags: Any) -> tuple[tuple[str | int, int], ...]:
 
 
 def joint_units(turntable_tags: Any) -> tuple[str, ...]:
-    """The unit of each row of the joint covariance (lab.rig_calibration_check.SIGMA_RANGE's keys)."""
+    """The unit of each row of the joint covariance (lab.core.rig_calibration_check.SIGMA_RANGE's keys)."""
     units: list[str] = []
     for name, _ in joint_blocks(turntable_tags):
         units += ["px"] * 5 if name == "K" else ["1"] * 2 if name == "distortion" else list(POSE_UNITS)

@@ -4,9 +4,9 @@ run make before anything moves (docs/hardware.md, "Rig calibration file").
 Two kinds:
 - `check_covariance`: every covariance in the file is finite, symmetric, positive definite, sanely
   conditioned, and claims a 1-sigma a survey could have measured (`SIGMA_RANGE`).  The reader
-  (lab/rig_calibration.py) applies it to each one as it parses the file.
+  (lab/core/rig_calibration.py) applies it to each one as it parses the file.
 - `check_fits_rig`: the values are physically possible and close to the rig file's nominal
-  geometry -- the rough-measurement bounds of `lab.rig_error.ROUGH`, the one place they are
+  geometry -- the rough-measurement bounds of `lab.core.rig_error.ROUGH`, the one place they are
   stated -- and the file was made for this rig.
 
 The conditioning bound, `MAX_CONDITION`, applies to the correlation matrix (the covariance scaled
@@ -26,9 +26,9 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from lab.errors import UserError
-from lab.geometry import Pose3, Rot3
-from lab.rig_error import ROUGH
+from lab.core.errors import UserError
+from lab.core.geometry import Pose3, Rot3
+from lab.core.rig_error import ROUGH
 
 MAX_CONDITION = 1e10
 # Each 1-sigma a file may claim, by unit: below, a quantity "known" better than a nanometre or a
@@ -102,9 +102,9 @@ def _near(name: str, what: str, est: Pose3, nominal: Pose3, bound_m: float, boun
 
 
 def check_for_rig(cal: Any, rig: Any, camera: Any, model: Any, src: str) -> None:
-    """`check_fits_rig` against a rig (lab.config.Rig), its camera file's intrinsics (K, width_px,
+    """`check_fits_rig` against a rig (lab.core.config.Rig), its camera file's intrinsics (K, width_px,
     height_px; None: the camera is not calibrated yet, its part is skipped) and the BORG design whose
-    rim tags the file located (lab.structures.borg.BorgModel)."""
+    rim tags the file located (lab.core.structures.borg.BorgModel)."""
     tags = {t: model.tags[t].structure_T_tag for t in model.turntable.tag_ids}
     check_fits_rig(cal, rig_name=rig.name, world_T_base=rig.stewart.world_T_base,
                    platform_T_camera=rig.camera.platform_T_camera, K=None if camera is None else camera.K,
@@ -115,7 +115,7 @@ def check_for_rig(cal: Any, rig: Any, camera: Any, model: Any, src: str) -> None
 def check_fits_rig(cal: Any, *, rig_name: str, world_T_base: Pose3, platform_T_camera: Pose3, K: np.ndarray | None,
                    width_px: int, height_px: int, turntable_tags: Mapping[int, Pose3], src: str,
                    structure: str = "the structure") -> None:
-    """The calibration `cal` (lab.rig_calibration.RigCalibration) is for this rig and close to its
+    """The calibration `cal` (lab.core.rig_calibration.RigCalibration) is for this rig and close to its
     nominal geometry: the rig file's poses, the camera file's K and frame size (K None: not
     checked), the design's rim tags (structure frame).  One line naming the file, key and value,
     else nothing."""

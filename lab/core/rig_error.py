@@ -104,7 +104,7 @@ class RoughBounds:
     "Measuring the mount poses roughly"): beyond these a value is not a measurement error but a
     mistake -- a unit typo, a flipped frame, a file for another bench.  The one statement of these
     bounds: a simulated rig's errors (`[sim.rig_error]`) and a rig calibration file's values
-    (lab/rig_calibration_check.py) are both held to them.  Per component; SI units."""
+    (lab/core/rig_calibration_check.py) are both held to them.  Per component; SI units."""
 
     camera_mount_m: float = 0.1
     camera_mount_rad: float = 0.2

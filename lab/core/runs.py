@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lab.errors import UserError
+from lab.core.errors import UserError
 
 ENV_ROOT = "LAB_RUNS"
 ENV_CONFIG = "LAB_CONFIG"
@@ -99,8 +99,8 @@ class RunEntry:
 
 def read_run(run_dir: Path, root: Path | None = None) -> RunEntry:
     """What a run directory says about its run.  A killed run (no stop record) is `killed`."""
-    from lab.recorder import topics
-    from lab.recorder.reader import ScanState, iter_messages
+    from lab.core.recorder import topics
+    from lab.core.recorder.reader import ScanState, iter_messages
 
     rid = str(run_dir.relative_to(root)) if root is not None and run_dir.is_relative_to(root) else str(run_dir)
     entry = RunEntry(rid, str(run_dir))
@@ -144,7 +144,7 @@ def read_run(run_dir: Path, root: Path | None = None) -> RunEntry:
         entry.duration_s = float(stop.duration_s)
         entry.steps_completed = max(entry.steps_completed, int(stop.steps_completed))
     else:
-        from lab.locks import read_holder
+        from lab.core.locks import read_holder
 
         # a run still going holds its directory's lock (a .lock that is no file holds nothing)
         holder = read_holder(run_dir / ".lock") if _regular(run_dir / ".lock") else None
@@ -186,7 +186,7 @@ def _start_stop_indexed(path: Path) -> tuple[Any, Any]:
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
 
-    from lab.recorder import topics
+    from lab.core.recorder import topics
 
     start = stop = None
     with open(path, "rb") as f:
@@ -373,8 +373,8 @@ class MetricStats:
 def run_metrics(path: Path) -> dict[str, tuple[str, list[float]]]:
     """Every metric a run logged: name -> (unit, values in log order).  Reads only the metrics
     topic (a few hundred records of a file that is mostly images)."""
-    from lab.recorder import topics
-    from lab.recorder.reader import iter_messages
+    from lab.core.recorder import topics
+    from lab.core.recorder.reader import iter_messages
 
     out: dict[str, tuple[str, list[float]]] = {}
     for msg in iter_messages(path, topics.METRICS):

@@ -10,9 +10,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lab.errors import UserError
-from lab.imaging import parse_imaging
-from lab.rig_error import RigError, parse_rig_error
+from lab.core.errors import UserError
+from lab.core.imaging import parse_imaging
+from lab.core.rig_error import RigError, parse_rig_error
 
 BORG_FAULT_KINDS = ("partial_deploy", "tag_displaced", "module_offset")
 DEVICE_FAULT_KINDS = ("timeout", "garbled", "disconnect", "stuck", "http_500")
@@ -44,7 +44,7 @@ class TrussNoise:
 
 @dataclass(frozen=True)
 class CameraNoise:
-    """A scenario's `[camera]` and `[tags]` keys (`lab/imaging.py`); None: the rig's own value
+    """A scenario's `[camera]` and `[tags]` keys (`lab/core/imaging.py`); None: the rig's own value
     (`[sim.camera]`, `[sim.tags]`), so a scenario changes only what it names."""
 
     pixel_noise: float | None = None         # read noise, grey levels, std

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from lab.errors import LabError, UserError
+from lab.core.errors import LabError, UserError
 
 LOOPBACK = "127.0.0.1"
 START_TIMEOUT_S = 30.0          # the rerun CLI starts in ~0.5 s; a loaded CI machine is slower
@@ -204,7 +204,7 @@ def attach(rec: Any, mode: str, *, blueprint: Any = None, save: str | Path | Non
            connect: str | None = None) -> Sink:
     """Point the recording stream `rec` at its sink (before anything is logged, so nothing is lost)."""
     if mode == "save":
-        from lab.paths import check_output_file
+        from lab.core.paths import check_output_file
 
         out = check_output_file(save, "--save")  # type: ignore[arg-type]
         rec.save(out, default_blueprint=blueprint)

@@ -15,7 +15,7 @@ Figures: false flags on good modules, faults caught, good-module position and ro
 against the simulated truth, the rig calibration's error against the truth and its NEES, the SLAM
 step time and the run's wall time.
 
-Trials run through `lab.executor`: --workers N runs N `lab run borg` at once (default: all cores;
+Trials run through `lab.core.executor`: --workers N runs N `lab run borg` at once (default: all cores;
 each simulated bench listens on its own free loopback ports), --scheduler tcp://HOST:PORT on a Dask
 cluster.  A trial's seed is the scenario's, so the figures do not depend on which ran it.  Finished
 trials are journaled in --out/trials.jsonl: the same command after an interruption resumes.
@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from lab.executor import Trial, add_executor_arguments
+from lab.core.executor import Trial, add_executor_arguments
 from lab.studies.bench_common import report_study, run_trial_study
 
 # Faults among the first 9 modules, so --quick sees them all: a partial deployment and a 15 mm
@@ -82,7 +82,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _scenario(seed: int, scale: float) -> str:
-    from lab.config import load_rig
+    from lab.core.config import load_rig
 
     e = load_rig().sim.rig_error.scaled(scale)
     lines = [f"seed = {seed}", "", "[rig_error]"]
@@ -243,7 +243,7 @@ def _progress(r: dict[str, Any]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lab.errors import UserError
+    from lab.core.errors import UserError
 
     if args.report:
         return report_study(args.report, "calibration", _aggregate, to_markdown)

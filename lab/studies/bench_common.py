@@ -10,8 +10,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from lab.executor import Trial, open_study, without_executor_args
-from lab.executor.journal import finite_values
+from lab.core.executor import Trial, open_study, without_executor_args
+from lab.core.executor.journal import finite_values
 
 
 def save_figure(fig, out_dir: str, name: str, dpi: int = 110) -> str:
@@ -28,7 +28,7 @@ def save_figure(fig, out_dir: str, name: str, dpi: int = 110) -> str:
 def report_study(path: str, name: str, aggregate: Callable[[list[dict]], list[dict]],
                  to_markdown: Callable[[dict], str]) -> int:
     """`lab bench NAME --report FILE`: the tables of a finished or interrupted study's NAME.json."""
-    from lab.errors import UserError
+    from lab.core.errors import UserError
 
     try:
         res = json.loads(Path(path).read_text())
@@ -43,7 +43,7 @@ def report_study(path: str, name: str, aggregate: Callable[[list[dict]], list[di
 def run_trial_study(args: argparse.Namespace, name: str, runs: Sequence[Trial], trial: Callable[[Trial], dict],
                     params: dict[str, Any], aggregate: Callable[[list[dict]], list[dict]],
                     to_markdown: Callable[[dict], str], progress: Callable[[dict], str]) -> int:
-    """Run a study's trials through `lab.executor` (workers or Dask; journaled, so the same command
+    """Run a study's trials through `lab.core.executor` (workers or Dask; journaled, so the same command
     resumes), writing --out/NAME.json after every trial (an interrupted study's file has every
     finished one) and printing its tables (or, with --json, its figures) at the end.  `params`
     name the study (the journal's header, with the speed-up) and go into NAME.json; `progress`

@@ -96,7 +96,7 @@ WORDS = {
 def _fast_rig():
     import dataclasses
 
-    from lab.config import load_rig
+    from lab.core.config import load_rig
 
     rig = load_rig(SIM_RIG).with_links(reply_timeout_s=0.1, margin_s=0.3, retries=2)
     cam = dataclasses.replace(rig.camera, timeout_s=0.5) if rig.camera else None
@@ -176,7 +176,7 @@ def _run_device_case(device: str, kind: str, after: int, count: int) -> str:
 
 
 def device_cases(quick: bool) -> list[Case]:
-    from lab.config import load_rig
+    from lab.core.config import load_rig
 
     rig = load_rig(SIM_RIG)
     timings = [(0, 1), (2, 1), (5, 0)] if quick else [(a, c) for a in (0, 1, 2, 3, 5, 8) for c in (1, 0)]
@@ -218,16 +218,16 @@ def _wait(out: Path, n: int, proc: subprocess.Popen, timeout: float = 300) -> bo
 
 
 def _step_ends(path: Path) -> list[int]:
-    from lab.recorder import topics
-    from lab.recorder.reader import iter_messages
+    from lab.core.recorder import topics
+    from lab.core.recorder.reader import iter_messages
 
     return [r.message.index for r in iter_messages(path) if r.topic == topics.RUN_STEP and r.message.phase == "end"]
 
 
 def _sent_motion(path: Path) -> bool:
     """Did the run command any motion (so its clean-up must have stopped something)?"""
-    from lab.recorder import topics
-    from lab.recorder.reader import iter_messages
+    from lab.core.recorder import topics
+    from lab.core.recorder.reader import iter_messages
 
     return any(r.message.direction == "tx" and (b" STEP " in r.message.data or b"/step?" in r.message.data)
                for r in iter_messages(path, topics.COMMS))
@@ -292,7 +292,7 @@ def _signal_case(ref: Reference, work: Path, after_steps: int, second: int, gap_
     name = f"signals/truss/SIGINT then {label} {gap_s * 1000:g} ms later, after step {after_steps}"
 
     def check() -> str:
-        from lab.recorder.reader import read_summary
+        from lab.core.recorder.reader import read_summary
 
         out = work / name.replace("/", "_").replace(" ", "_")
         p = subprocess.Popen(LAB + TRUSS + ["--speedup", "2", "--out", str(out)], stdout=subprocess.PIPE,
@@ -722,7 +722,7 @@ def sharing_cases(work: Path, quick: bool) -> list[Case]:
     def held_devices() -> str:
         _, hw_rig = _shared_rig(work)
         holder = subprocess.Popen([sys.executable, "-c", (
-            "import time, drivers; from lab.config import load_rig; from lab.locks import set_holder\n"
+            "import time, drivers; from lab.core.config import load_rig; from lab.core.locks import set_holder\n"
             f"set_holder(run='holder-run'); d = drivers.connect(load_rig({str(hw_rig)!r}))\n"
             "print('held', flush=True); time.sleep(120)\n")], stdout=subprocess.PIPE, text=True)
         try:

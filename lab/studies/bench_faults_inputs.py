@@ -386,8 +386,8 @@ def _journal_case(work: Path, name: str, edit: Callable[[str], str], must: str) 
     """An interrupted study's journal, edited, then the study run again as `lab bench` runs one."""
     import argparse
 
-    from lab.errors import UserError
-    from lab.executor import Journal, make_trials
+    from lab.core.errors import UserError
+    from lab.core.executor import Journal, make_trials
     from lab.studies.bench_common import run_trial_study
 
     out = work / "journal" / name.replace(" ", "_")
@@ -411,7 +411,7 @@ def _journal_case(work: Path, name: str, edit: Callable[[str], str], must: str) 
 
 def journal_cases(work: Path, quick: bool) -> list[Case]:
     def line_rewritten(text: str) -> str:
-        from lab.executor.journal import _line
+        from lab.core.executor.journal import _line
 
         lines = text.splitlines()
         lines[2] = _line("t/1", {"value": float("nan"), "none": None}).strip()

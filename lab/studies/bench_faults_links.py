@@ -124,8 +124,8 @@ def _distance(a: Any, b: Any) -> float:
 _MOVER = r"""
 import math, sys, threading, time
 import drivers
-from lab.config import load_rig
-from lab.locks import set_holder
+from lab.core.config import load_rig
+from lab.core.locks import set_holder
 
 set_holder(run="holder-run")
 rig, name = load_rig(sys.argv[1]), sys.argv[2]
@@ -513,8 +513,8 @@ def _steps_done(out: Path) -> int:
 
 
 def _step_ends(path: Path) -> list[int]:
-    from lab.recorder import topics
-    from lab.recorder.reader import iter_messages
+    from lab.core.recorder import topics
+    from lab.core.recorder.reader import iter_messages
 
     return [r.message.index for r in iter_messages(path) if r.topic == topics.RUN_STEP and r.message.phase == "end"]
 
@@ -526,8 +526,8 @@ def _findings(summary: dict) -> dict:
 
 
 def _sent(path: Path, device_url: str) -> list[str]:
-    from lab.recorder import topics
-    from lab.recorder.reader import iter_messages
+    from lab.core.recorder import topics
+    from lab.core.recorder.reader import iter_messages
 
     out = []
     for r in iter_messages(path, topics.COMMS):

@@ -61,7 +61,7 @@ def _ippe_solutions(K, dist, corners, size_m):
     import numpy as np
 
     from estimation.fiducials import tag_object_points
-    from lab.geometry import Pose3, Rot3
+    from lab.core.geometry import Pose3, Rot3
 
     n, rvecs, tvecs, _ = cv2.solvePnPGeneric(tag_object_points(size_m), corners, K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
     return [Pose3(Rot3(cv2.Rodrigues(r)[0]), np.asarray(t, float).reshape(3)) for r, t in zip(rvecs, tvecs)]
@@ -70,7 +70,7 @@ def _ippe_solutions(K, dist, corners, size_m):
 def _perturbed(rng, pose, rot_rad: float, trans_m: float):
     import numpy as np
 
-    from lab.geometry import Pose3, Rot3
+    from lab.core.geometry import Pose3, Rot3
 
     w = rng.normal(size=3)
     w *= rot_rad / np.linalg.norm(w)
@@ -84,7 +84,7 @@ def accuracy_study(trials: int, seed: int) -> dict:
     import numpy as np
 
     from estimation.fiducials import TagDetector
-    from lab.geometry import Rot3, pose_error
+    from lab.core.geometry import Rot3, pose_error
     from sim_devices.render import render_tags
 
     K, dist, W, H, noise, blur = _camera()

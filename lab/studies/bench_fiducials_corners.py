@@ -128,7 +128,7 @@ def tilt_study(trials: int, seed: int) -> dict:
     import numpy as np
 
     from estimation.fiducials import TagDetector
-    from lab.geometry import Pose3, Rot3
+    from lab.core.geometry import Pose3, Rot3
     from sim_devices.render import render_grey, render_tags
 
     K, dist, W, H, noise, blur = _camera()

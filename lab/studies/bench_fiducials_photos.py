@@ -434,7 +434,7 @@ def sim_default_frames(n: int = len(SIM_TURNTABLE_DEG)) -> list:
     """Frames of the default simulated rig (lab/rigs/sim.toml, its [sim.camera] and scenario
     defaults) as its camera renders them (`SimWorld.render`): the whole BORG placed, the platform at
     home, the turntable at SIM_TURNTABLE_DEG; [(label, BGR image)]."""
-    from lab.config import load_rig
+    from lab.core.config import load_rig
     from sim_devices.world import SimWorld
 
     world = SimWorld(load_rig())
@@ -465,7 +465,7 @@ def quality_study(quick: bool = False, photo_dir: str = PHOTO_DIR) -> dict:
         r = iq.measure_image(img, detector=det)
         rows.append({"image": label, "source": "simulator", **r})
         sim_tags += r["tags"]
-    from lab.config import load_rig
+    from lab.core.config import load_rig
 
     c = load_rig().sim.camera
     photo_tags = [t for r in rows if r["source"] == "photograph" for t in r["tags"]]

@@ -14,7 +14,7 @@
 Writes mle.json, mle.md and PNG plots to --out (default bench_out/mle) and prints the Markdown
 (or the JSON with --json).  Top-level imports stay light: the CLI imports this module for --help.
 
-Trials run through `lab.executor` (--workers N local processes, default all cores, or --scheduler
+Trials run through `lab.core.executor` (--workers N local processes, default all cores, or --scheduler
 tcp://HOST:PORT for Dask), the four studies at once; the figures for a seed are the same whichever
 runs them.  An interrupted study keeps its finished trials in --out/trials.jsonl and the same
 command resumes from them.
@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from lab.studies.bench_common import save_figure
-from lab.executor import Study, Trial, add_executor_arguments, make_trials, open_study, trial_seed
+from lab.core.executor import Study, Trial, add_executor_arguments, make_trials, open_study, trial_seed
 
 SIGMA_L_PAPER = math.sqrt(3.57e-7)
 SIGMA_M_PAPER = math.sqrt(6.25e-8)
@@ -90,7 +90,7 @@ class AssemblySpec:
 
 @functools.lru_cache(maxsize=8)
 def _truss(name: str):
-    from lab.structures.trusses import build_truss
+    from lab.core.structures.trusses import build_truss
 
     return build_truss(name)
 
@@ -523,7 +523,7 @@ def run(args: argparse.Namespace) -> int:
     only = set(getattr(args, "only", None) or STUDIES)
     out_dir = getattr(args, "out", os.path.join("bench_out", "mle"))
     if seed < 0:
-        from lab.errors import UserError
+        from lab.core.errors import UserError
 
         raise UserError(f"--seed must be 0 or more, got {seed}")
     os.makedirs(out_dir, exist_ok=True)

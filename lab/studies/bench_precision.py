@@ -100,7 +100,7 @@ def _ippe(K, corners, size, predicted):
     import cv2
 
     from estimation.fiducials import tag_object_points
-    from lab.geometry import Pose3, Rot3
+    from lab.core.geometry import Pose3, Rot3
 
     n, rvecs, tvecs, errs = cv2.solvePnPGeneric(tag_object_points(size), corners.astype(np.float64), K, None,
                                                 flags=cv2.SOLVEPNP_IPPE_SQUARE)
@@ -122,8 +122,8 @@ def trial(kind: str, size: float, target: str, seed: int, setup: PrecisionSetup,
     from estimation.sf_graphslam import SfGraphSlam, SlamConfig
     from estimation.tag_elimination import eliminate_tags
     from estimation.verification import Tolerance, Tolerances, module_from_tag, verify_module
-    from lab.geometry import Pose3, Rot3, pose_error
-    from lab.structures.borg import build_borg
+    from lab.core.geometry import Pose3, Rot3, pose_error
+    from lab.core.structures.borg import build_borg
 
     rng = np.random.default_rng(seed)
     model = build_borg()
@@ -235,7 +235,7 @@ def trial(kind: str, size: float, target: str, seed: int, setup: PrecisionSetup,
 
 
 def precision_trial(t) -> dict:
-    """One `lab.executor` trial: (kind, size, target, setup, modules) with the trial's own seed."""
+    """One `lab.core.executor` trial: (kind, size, target, setup, modules) with the trial's own seed."""
     kind, size, target, setup, modules = t.spec
     return trial(kind, size, target, t.seed, setup, modules)
 
@@ -243,9 +243,9 @@ def precision_trial(t) -> dict:
 def study(trials: int, seed: int, setup: PrecisionSetup | None = None, cases=CASES_DEFAULT, label: str = "default",
           runner=None) -> dict:
     """Flag / uncertain rates against deviation size, false flags, accuracy against the bound.
-    `runner` (a `lab.executor.Study`) runs the trials; without one they run here, one by one."""
-    from lab.executor import InProcess, make_trials
-    from lab.structures.borg import build_borg
+    `runner` (a `lab.core.executor.Study`) runs the trials; without one they run here, one by one."""
+    from lab.core.executor import InProcess, make_trials
+    from lab.core.structures.borg import build_borg
 
     setup = setup or PrecisionSetup()
     model = build_borg()
@@ -310,8 +310,8 @@ def solve_times(seed: int, observation: str, setup: PrecisionSetup | None = None
 
     from lab.studies import slam_sim as ss
     from estimation.sf_graphslam import SfGraphSlam, SlamConfig
-    from lab.geometry import Pose3, Rot3
-    from lab.structures.borg import build_borg
+    from lab.core.geometry import Pose3, Rot3
+    from lab.core.structures.borg import build_borg
 
     setup = setup or PrecisionSetup()
     rng = np.random.default_rng(seed)

@@ -67,8 +67,8 @@ def same_summary(a: dict, b: dict) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lab.recorder.reader import iter_messages
-    from lab.recorder import topics
+    from lab.core.recorder.reader import iter_messages
+    from lab.core.recorder import topics
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _median_metric(path: Path, name: str) -> float:
-    from lab.runs import run_metrics
+    from lab.core.runs import run_metrics
 
     vals = sorted(run_metrics(path).get(name, ("", []))[1])
     return vals[len(vals) // 2] if vals else float("nan")

@@ -42,8 +42,8 @@ def measure(n: int, observation: str, seed: int) -> dict:
     from lab.studies import slam_sim as ss
     from lab.studies.bench_precision import PrecisionSetup, _sight
     from estimation.sf_graphslam import SfGraphSlam, SlamConfig
-    from lab.geometry import Pose3, Rot3
-    from lab.structures.borg import build_borg
+    from lab.core.geometry import Pose3, Rot3
+    from lab.core.structures.borg import build_borg
 
     setup = PrecisionSetup()
     rng = np.random.default_rng([seed, n])

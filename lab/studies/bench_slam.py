@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="precision: plan each step's views to this module 1-sigma (default 0.25, as a run)")
     parser.add_argument("--max-views", type=int, default=None, metavar="N",
                         help="precision: view budget per step (default 12, as a run)")
-    from lab.executor import add_executor_arguments
+    from lab.core.executor import add_executor_arguments
 
     add_executor_arguments(parser)   # the precision study's trials (the others run here)
     parser.add_argument("--literal-powell", type=int, default=None, metavar="N",
@@ -92,7 +92,7 @@ class _Acc:
         self.extra: dict[str, float | int] = {}
 
     def add(self, est: dict, survey, seconds: float, tags=None) -> None:
-        from lab.geometry import pose_error
+        from lab.core.geometry import pose_error
 
         tags = [t for t in (tags or survey.tags) if t in est]
         for t in tags:
@@ -213,7 +213,7 @@ def study_pair(kind: str, trials: int, seed: int) -> dict:
     import numpy as np
 
     from lab.studies import slam_sim as ss
-    from lab.structures.borg import build_borg
+    from lab.core.structures.borg import build_borg
 
     model = build_borg()
     tags = {"deployable": [1, 2], "partial_deploy": [1, 2], "closeout_strut": [1, 9], "closeout_square": [1, 0]}[kind]
@@ -251,7 +251,7 @@ def study_borg_face1(trials: int, seed: int, literal_trials: int) -> tuple[dict,
 
     from lab.studies import paper_baseline as pb
     from lab.studies import slam_sim as ss
-    from lab.structures.borg import build_borg
+    from lab.core.structures.borg import build_borg
 
     model = build_borg()
     tags = list(ss.FACE1_TABLE4_TAGS)
@@ -333,7 +333,7 @@ def study_tag_elimination(trials: int, seed: int) -> dict:
 
     from lab.studies import slam_sim as ss
     from estimation.tag_elimination import eliminate_tags
-    from lab.structures.borg import build_borg
+    from lab.core.structures.borg import build_borg
 
     model = build_borg()
     tags = ss.face1_tags(model)
@@ -369,7 +369,7 @@ def study_borg_full(trials: int, seed: int) -> tuple[dict, dict]:
 
     from lab.studies import slam_sim as ss
     from estimation.sf_graphslam import SfGraphSlam
-    from lab.structures.borg import build_borg
+    from lab.core.structures.borg import build_borg
 
     model = build_borg()
     tags = sorted(model.tags)
@@ -430,7 +430,7 @@ def study_borg_full_rendered(trials: int, seed: int) -> dict:
     import numpy as np
 
     from lab.studies import slam_sim as ss
-    from lab.structures.borg import build_borg
+    from lab.core.structures.borg import build_borg
 
     model = build_borg()
     tags = sorted(model.tags)
@@ -495,7 +495,7 @@ def study_verification(trials: int, seed: int) -> dict:
     import numpy as np
 
     from lab.studies import slam_sim as ss
-    from lab.structures.borg import build_borg
+    from lab.core.structures.borg import build_borg
 
     model = build_borg()
     names = [m.name for m in model.modules]
@@ -545,7 +545,7 @@ def _fmt(v) -> str:
 
 
 def study_precision(trials: int, seed: int, args: argparse.Namespace) -> dict:
-    from lab.executor import open_study
+    from lab.core.executor import open_study
 
     fingerprint = {"bench": "slam/precision", "seed": seed, "trials": trials,
                    **{k: getattr(args, k, None) for k in ("corner_sigma_px", "sigma_target_mm", "max_views")}}
@@ -563,7 +563,7 @@ def _study_precision(trials: int, seed: int, args: argparse.Namespace, runner) -
     from dataclasses import replace
 
     from lab.studies import bench_precision as bp
-    from lab.errors import UserError
+    from lab.core.errors import UserError
 
     setup = bp.PrecisionSetup()
     if args.corner_sigma_px is not None:
@@ -828,7 +828,7 @@ def _json_safe(v):
 
 
 def run(args: argparse.Namespace) -> int:
-    from lab.errors import UserError
+    from lab.core.errors import UserError
 
     only = list(args.only or DEFAULT_STUDIES)
     if args.trials is not None and args.trials < 1:

@@ -16,7 +16,7 @@ Figures per condition:
   dimension 6), the corner noise the run measured from its residuals against the detector's true
   corner error.
 
-Trials run through `lab.executor` (--workers N, or --scheduler on a Dask cluster); finished trials
+Trials run through `lab.core.executor` (--workers N, or --scheduler on a Dask cluster); finished trials
 are journaled in --out/trials.jsonl, so the same command after an interruption resumes.
 """
 
@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from lab.executor import Trial, add_executor_arguments
-from lab.imaging import IDEAL, scenario_tables
+from lab.core.executor import Trial, add_executor_arguments
+from lab.core.imaging import IDEAL, scenario_tables
 from lab.studies.bench_common import report_study, run_trial_study
 
 # A scenario's [camera] and [tags] for each camera quality (omitted keys keep the rig's defaults).
@@ -80,7 +80,7 @@ def _unit(rng: np.random.Generator) -> np.ndarray:
 
 def scenario(seed: int, scale: float, camera: str) -> str:
     """The trial's scenario: seed, rig errors, camera, faults (directions seeded by the trial's seed)."""
-    from lab.config import load_rig
+    from lab.core.config import load_rig
 
     e = load_rig().sim.rig_error.scaled(scale)
     lines = [f"seed = {seed}", "", "[rig_error]"]
@@ -227,7 +227,7 @@ def _progress(r: dict[str, Any]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lab.errors import UserError
+    from lab.core.errors import UserError
 
     if args.report:
         return report_study(args.report, "trust", aggregate, to_markdown)

@@ -10,7 +10,7 @@ import time
 def _camera():
     import numpy as np
 
-    from lab.config import load_rig
+    from lab.core.config import load_rig
 
     c = load_rig().sim.camera
     K = np.array([[c["fx_px"], 0.0, c["cx_px"]], [0.0, c["fy_px"], c["cy_px"]], [0.0, 0.0, 1.0]])
@@ -22,7 +22,7 @@ def tag_pose_on_ray(ray, distance_m: float, angle_rad: float, phi: float, psi: f
     the line of sight towards direction `phi`, turned `psi` about its normal."""
     import numpy as np
 
-    from lab.geometry import Pose3, Rot3
+    from lab.core.geometry import Pose3, Rot3
 
     back = -np.asarray(ray, dtype=float)
     helper = np.array([1.0, 0.0, 0.0]) if abs(back[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
@@ -62,7 +62,7 @@ def twenty_tag_frames(frames: int, seed: int) -> list:
     seen whole, rendered with the sim's noise: [(BGR image, render seconds)]."""
     import numpy as np
 
-    from lab.geometry import Pose3
+    from lab.core.geometry import Pose3
     from sim_devices.render import render_tags
 
     K, dist, W, H, noise, blur = _camera()

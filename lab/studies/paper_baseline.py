@@ -4,7 +4,7 @@ an all-zero state (paper §2.8).  It is the baseline `lab bench slam` compares o
 estimator against; nothing in the procedure uses it.
 
 State (Algorithms 3, 5, 8): y = [x_0 .. x_{T-1}, y_tag_1 .. y_tag_M], each a 6-vector
-(x, y, z, roll, pitch, yaw) -- metres and radians, R = Rz(yaw) Ry(pitch) Rx(roll) (lab.geometry).
+(x, y, z, roll, pitch, yaw) -- metres and radians, R = Rz(yaw) Ry(pitch) Rx(roll) (lab.core.geometry).
 The world frame is the first camera's: Algorithm 3 compares x_0 with zeros ("the camera is
 supposed to have an initial state of zero").
 
@@ -47,7 +47,7 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-from lab.geometry import Pose3, from_xyzrpy, to_xyzrpy
+from lab.core.geometry import Pose3, from_xyzrpy, to_xyzrpy
 
 DOF = 6
 

@@ -35,8 +35,8 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 
 from estimation.fiducials import Detection
-from lab.geometry import Pose3, Rot3, look_at
-from lab.structures.borg import BorgModel
+from lab.core.geometry import Pose3, Rot3, look_at
+from lab.core.structures.borg import BorgModel
 
 # The simulated bench's camera (lab/rigs/sim.toml [sim.camera]): 1280x720, 70 deg HFOV.
 SIM_K = np.array([[914.0, 0.0, 639.5], [0.0, 914.0, 359.5], [0.0, 0.0, 1.0]])

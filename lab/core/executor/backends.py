@@ -17,12 +17,12 @@ import threading
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
-from lab.errors import UserError
-from lab.executor.trials import Trial
+from lab.core.errors import UserError
+from lab.core.executor.trials import Trial
 
 if TYPE_CHECKING:
-    from lab.executor.journal import Journal
-    from lab.executor.progress import Progress
+    from lab.core.executor.journal import Journal
+    from lab.core.executor.progress import Progress
 
 TrialFn = Callable[[Trial], Any]
 

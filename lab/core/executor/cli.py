@@ -7,11 +7,11 @@ import os
 from pathlib import Path
 from typing import Any, Callable
 
-from lab.errors import UserError
-from lab.executor.backends import MAX_WORKERS, TrialExecutor, check_scheduler, check_workers, make_executor
-from lab.executor.journal import JOURNAL_NAME, Journal
-from lab.executor.progress import Progress
-from lab.executor.study import Study
+from lab.core.errors import UserError
+from lab.core.executor.backends import MAX_WORKERS, TrialExecutor, check_scheduler, check_workers, make_executor
+from lab.core.executor.journal import JOURNAL_NAME, Journal
+from lab.core.executor.progress import Progress
+from lab.core.executor.study import Study
 
 EXECUTOR_FLAGS = ("--workers", "--scheduler")
 
@@ -33,7 +33,7 @@ def open_study(args: argparse.Namespace, out_dir: str | os.PathLike, study: dict
                validate: Callable[[Any], str | None] | None = None) -> Study:
     """The executor of --workers / --scheduler, the journal `OUT/trials.jsonl` of this study
     (`study`: its parameters, JSON; a rerun with the same ones resumes; `validate`: what a restored
-    result must be, lab.executor.journal.Journal), a progress bar."""
+    result must be, lab.core.executor.journal.Journal), a progress bar."""
     executor = executor_from_args(args)
     try:
         journal = Journal(Path(out_dir) / JOURNAL_NAME, study, validate=validate)

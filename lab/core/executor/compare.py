@@ -1,6 +1,6 @@
 """Compare two studies' JSON apart from timings: the check that an executor changed nothing.
 
-    python -m lab.executor.compare bench_out/mle-local/mle.json bench_out/mle-dask/mle.json
+    python -m lab.core.executor.compare bench_out/mle-local/mle.json bench_out/mle-dask/mle.json
 
 prints `identical apart from timings` (exit 0) or the paths that differ (exit 1).  A timing is a
 key one of whose underscore-separated words is seconds, s, ms or wall (`seconds`, `wall_s`,
@@ -58,7 +58,7 @@ def differences(a: Any, b: Any, path: str = "$", limit: int = 20) -> list[str]:
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    parser = argparse.ArgumentParser(prog="python -m lab.executor.compare",
+    parser = argparse.ArgumentParser(prog="python -m lab.core.executor.compare",
                                      description="two studies' JSON, identical apart from timings?")
     parser.add_argument("first")
     parser.add_argument("second")

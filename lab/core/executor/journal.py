@@ -23,7 +23,7 @@ import zlib
 from pathlib import Path
 from typing import Any, Callable
 
-from lab.errors import UserError
+from lab.core.errors import UserError
 
 JOURNAL_NAME = "trials.jsonl"
 JOURNAL_FORMAT = 2          # 2: each line with its CRC-32

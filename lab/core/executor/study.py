@@ -7,10 +7,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence, TypeVar
 
-from lab.executor.backends import InProcess, TrialExecutor, TrialFn
-from lab.executor.journal import Journal
-from lab.executor.progress import Progress
-from lab.executor.trials import Trial
+from lab.core.executor.backends import InProcess, TrialExecutor, TrialFn
+from lab.core.executor.journal import Journal
+from lab.core.executor.progress import Progress
+from lab.core.executor.trials import Trial
 
 T = TypeVar("T")
 

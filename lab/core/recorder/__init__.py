@@ -3,13 +3,13 @@ for images, calibration, transforms, poses and logs and our own `lab.*` protobuf
 domain records; a start and a stop record on every exit path; a chunk ended and fsynced at the
 end of every step; `recover` for files left without their footer; readers for tests and review.
 
-    from lab.recorder import RunRecorder, topics, messages
+    from lab.core.recorder import RunRecorder, topics, messages
 """
 
-from lab.recorder import messages, topics
-from lab.recorder.reader import RecordedMessage, RunSummary, ScanState, iter_messages, read_summary
-from lab.recorder.recorder import RunRecorder, StepInfo
-from lab.recorder.recover import RecoverReport, default_output, recover
+from lab.core.recorder import messages, topics
+from lab.core.recorder.reader import RecordedMessage, RunSummary, ScanState, iter_messages, read_summary
+from lab.core.recorder.recorder import RunRecorder, StepInfo
+from lab.core.recorder.recover import RecoverReport, default_output, recover
 
 __all__ = [
     "RunRecorder", "StepInfo", "messages", "topics", "iter_messages", "read_summary", "RecordedMessage",

@@ -57,7 +57,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from google.protobuf import timestamp_pb2  # noqa: F401  (registers google/protobuf/timestamp.proto)
 from google.protobuf.timestamp_pb2 import Timestamp
 
-from lab.geometry import Pose3, from_quaternion, to_quaternion
+from lab.core.geometry import Pose3, from_quaternion, to_quaternion
 
 PROTO_FILE = "lab/messages.proto"
 PACKAGE = "lab"

@@ -22,8 +22,8 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import MAGIC_SIZE, breakup_chunk
 
-from lab.errors import UserError
-from lab.recorder import topics
+from lab.core.errors import UserError
+from lab.core.recorder import topics
 
 MAGIC = bytes([137, 77, 67, 65, 80, 48, 13, 10])
 

@@ -41,11 +41,11 @@ from mcap.well_known import MessageEncoding
 from mcap.writer import CompressionType, Writer as McapWriter
 from mcap_protobuf.schema import register_schema
 
-from lab.comms import CommsRecord
-from lab.errors import UserError
-from lab.geometry import Pose3
-from lab.recorder import messages as m
-from lab.recorder import topics
+from lab.core.comms import CommsRecord
+from lab.core.errors import UserError
+from lab.core.geometry import Pose3
+from lab.core.recorder import messages as m
+from lab.core.recorder import topics
 
 LOG_LEVELS = {"debug": Log.DEBUG, "info": Log.INFO, "warning": Log.WARNING, "warn": Log.WARNING,
               "error": Log.ERROR, "fatal": Log.FATAL}

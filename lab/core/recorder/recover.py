@@ -16,10 +16,10 @@ from pathlib import Path
 
 from mcap.writer import CompressionType, Writer as McapWriter
 
-from lab.errors import UserError
-from lab.recorder import messages as m
-from lab.recorder import topics
-from lab.recorder.reader import Decoders, ScanState, scan_records
+from lab.core.errors import UserError
+from lab.core.recorder import messages as m
+from lab.core.recorder import topics
+from lab.core.recorder.reader import Decoders, ScanState, scan_records
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """The channels (topics) of a run's MCAP file.  Import these instead of spelling topics out.
 
 Foxglove schemas (shown by plain `rerun RUN.mcap` and Foxglove with no glue) and our own `lab.*`
-messages (lab/recorder/messages.py); each topic carries exactly one schema."""
+messages (lab/core/recorder/messages.py); each topic carries exactly one schema."""
 
 from __future__ import annotations
 

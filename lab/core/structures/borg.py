@@ -6,7 +6,7 @@ text; `docs/borg.md` explains how this layout was derived from Table 1 and §2.6
 same rules (body-centred checkerboard of deployables, close-out members on the remaining grid
 edges) with generated names and IDs; see `docs/borg.md` for what they mean and don't.
 
-Frames (lab/geometry.py): structure frame at the outer corner node of the first deployable (2D),
+Frames (lab/core/geometry.py): structure frame at the outer corner node of the first deployable (2D),
 axes along the grid, z up.  Tag frame: x right, y up, z out of the face the tag is on.  Faces are
 numbered as in the paper's Figure 6: face 1 is x = 0, and each following face is the one the
 turntable brings in front of the camera after a further +90 deg turn (2: y = L, 3: x = L, 4: y = 0).
@@ -22,7 +22,7 @@ from typing import Literal
 
 import numpy as np
 
-from lab.geometry import Pose3, Rot3, pose
+from lab.core.geometry import Pose3, Rot3, pose
 
 ModuleKind = Literal["deployable", "closeout_strut", "closeout_square"]
 RelationKind = Literal["deployable", "closeout_strut", "closeout_square", "node", "turntable"]
@@ -537,7 +537,7 @@ def _build_general(n: int, s: float) -> BorgModel:
 
 def to_json(model: BorgModel) -> dict:
     """The `lab structure borg --json` shape."""
-    from lab.geometry import to_xyzquat
+    from lab.core.geometry import to_xyzquat
 
     return {
         "structure": f"borg:{model.n}",

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lab.structures.borg import BorgModel
+from lab.core.structures.borg import BorgModel
 
 COLOURS = {"deployable": "tab:blue", "closeout_strut": "goldenrod", "closeout_square": "tab:green"}
 

@@ -27,7 +27,7 @@ from functools import cached_property
 
 import numpy as np
 
-from lab.errors import UserError
+from lab.core.errors import UserError
 
 __all__ = [
     "TrussModel",
