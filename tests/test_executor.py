@@ -17,7 +17,7 @@ import pytest
 
 from lab.core.errors import UserError
 from lab.core.executor import (InProcess, Journal, LocalProcesses, Study, Trial, make_executor, make_trials, trial_seed,
-                          without_executor_args)
+                               without_executor_args)
 from lab.core.executor.compare import differences, strip_timings
 
 ROOT = Path(__file__).resolve().parents[1]

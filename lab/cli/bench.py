@@ -13,13 +13,13 @@ BENCHES: dict[str, tuple[str, str]] = {
     # name: (module, one-line help)
     "slam": ("lab.studies.bench_slam", "GraphSLAM vs SF-GraphSLAM vs the paper's Powell method (Monte Carlo)"),
     "fiducials": ("lab.studies.bench_fiducials", "AprilTag detection time and pose error on rendered images; image "
-                                                      "quality (edge spread, noise) of photographs vs the simulator"),
+                                               "quality (edge spread, noise) of photographs vs the simulator"),
     "mle": ("lab.studies.bench_mle", "IPJR sequencing, MLE vs EKF vs open loop"),
     "run": ("lab.studies.bench_run", "end-to-end simulated procedure runs (BORG, tetrahelix)"),
     "calibration": ("lab.studies.bench_calibration", "BORG verdicts and accuracy against rig-error size, with and "
-                                                    "without rig calibration"),
+                                                   "without rig calibration"),
     "trust": ("lab.studies.bench_trust", "verdicts, accuracy and honest 1-sigma against rig-error size and "
-                                                "camera quality"),
+                                             "camera quality"),
     "faults": ("lab.studies.bench_faults", "the fault campaign: device faults, kills, signals, bad input, abuse"),
 }
 

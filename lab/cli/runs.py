@@ -1,4 +1,5 @@
-"""`lab runs [--root DIR] [--json]` and `lab runs show RUN [--timings]`: the catalogue of past runs (lab/core/runs.py)."""
+"""`lab runs [--root DIR] [--json]` and `lab runs show RUN [--timings]`: the catalogue of past runs
+(lab/core/runs.py)."""
 
 from __future__ import annotations
 

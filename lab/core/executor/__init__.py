@@ -26,7 +26,7 @@ This is kernel code: it imports nothing above `lab/`, and no numpy at import tim
 its thread variables before numpy loads)."""
 
 from lab.core.executor.backends import (DaskCluster, InProcess, LocalProcesses, TrialExecutor, default_workers,
-                                   make_executor)
+                                        make_executor)
 from lab.core.executor.cli import add_executor_arguments, executor_from_args, open_study, without_executor_args
 from lab.core.executor.journal import JOURNAL_NAME, Journal
 from lab.core.executor.progress import Progress
