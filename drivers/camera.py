@@ -26,9 +26,9 @@ import numpy as np
 
 from drivers.errors import DeviceTimeout, Disconnected, ProtocolError, RigMismatch
 from drivers.transport import HttpTransport
-from lab.comms import CommsRecord, CommsSink, null_sink
-from lab.config import CameraConfig
-from lab.errors import UserError
+from lab.core.comms import CommsRecord, CommsSink, null_sink
+from lab.core.config import CameraConfig
+from lab.core.errors import UserError
 
 CALIBRATION_FORMAT = "lab-camera-calibration"
 SNAPSHOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")

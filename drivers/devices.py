@@ -16,10 +16,10 @@ from drivers.lift import Lift
 from drivers.ownership import Claims
 from drivers.stewart import Stewart
 from drivers.turntable import Turntable
-from lab.comms import CommsSink, null_sink
-from lab.config import Rig
-from lab.errors import LabError
-from lab.geometry import to_xyzrpy
+from lab.core.comms import CommsSink, null_sink
+from lab.core.config import Rig
+from lab.core.errors import LabError
+from lab.core.geometry import to_xyzrpy
 
 
 @dataclass

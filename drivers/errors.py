@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from lab.errors import LabError, UserError
+from lab.core.errors import LabError, UserError
 
 
 class DeviceError(LabError):

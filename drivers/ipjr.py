@@ -28,8 +28,8 @@ from drivers.errors import Disconnected, LengthControlError, OutOfRange, Protoco
 from drivers.motion import MotionPlan, Poll, Progress, link_drops, sent_motion, stop_quietly, wait_until_idle
 from drivers.transport import HttpTransport, LineTransport, Transport
 from drivers.wire import parse_fields, parse_float
-from lab.comms import CommsSink, null_sink
-from lab.config import IpjrConfig
+from lab.core.comms import CommsSink, null_sink
+from lab.core.config import IpjrConfig
 
 
 @dataclass(frozen=True)

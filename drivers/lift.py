@@ -15,8 +15,8 @@ from drivers.errors import MotionIncomplete, OutOfRange, ProtocolError
 from drivers.motion import MotionPlan, Progress, link_drops, name_link_loss, read_limits, sent_motion, wait_for_axis
 from drivers.transport import LineTransport
 from drivers.wire import parse_fields, parse_float
-from lab.comms import CommsSink, null_sink
-from lab.config import LiftConfig
+from lab.core.comms import CommsSink, null_sink
+from lab.core.config import LiftConfig
 
 ARRIVAL_TOLERANCE_MM = 0.01
 

@@ -2,7 +2,7 @@
 
 `claim(device, url)` takes an OS lock per key of what the device is (drivers/device_identity.py:
 a serial port's character device, a network endpoint's resolved addresses and port), in the
-machine-wide lock directory (lab/locks.py).  A second process asking for the same device, however
+machine-wide lock directory (lab/core/locks.py).  A second process asking for the same device, however
 it spells it (`localhost`, `127.1`, a `/dev/serial/by-id/...` link) and whatever its environment,
 gets `DeviceBusy` naming the device and the run that holds it, before it has sent a single byte,
 so it can neither move nor stop what another run is driving.  Within one process claims are
@@ -15,7 +15,7 @@ import threading
 from dataclasses import dataclass, field
 
 from drivers.device_identity import identify
-from lab.locks import Busy, FileLock, describe_holder, device_lock_path
+from lab.core.locks import Busy, FileLock, describe_holder, device_lock_path
 
 _guard = threading.Lock()
 _held: dict[str, tuple[FileLock, int]] = {}

@@ -22,9 +22,9 @@ from drivers.motion import MotionPlan, Poll, Progress, link_drops, name_link_los
 from drivers.stewart_kinematics import IkResult, StewartKinematics, as_pose, describe
 from drivers.transport import LineTransport
 from drivers.wire import parse_fields, parse_floats
-from lab.comms import CommsSink, null_sink
-from lab.config import StewartConfig
-from lab.geometry import Pose3
+from lab.core.comms import CommsSink, null_sink
+from lab.core.config import StewartConfig
+from lab.core.geometry import Pose3
 
 ARRIVAL_TOLERANCE_MM = 0.01
 

@@ -18,8 +18,8 @@ from typing import Sequence
 
 import numpy as np
 
-from lab.config import StewartGeometry
-from lab.geometry import Pose3, Rot3, from_xyzrpy, to_xyzrpy
+from lab.core.config import StewartGeometry
+from lab.core.geometry import Pose3, Rot3, from_xyzrpy, to_xyzrpy
 
 
 @dataclass(frozen=True)

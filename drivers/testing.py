@@ -19,7 +19,7 @@ import urllib.parse
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, Sequence
 
-from lab.config import Rig, load_rig
+from lab.core.config import Rig, load_rig
 
 
 class ScriptError(AssertionError):

@@ -33,7 +33,7 @@ from typing import Any, Callable, TypeVar
 import serial
 
 from drivers.errors import DeviceError, DeviceFault, DeviceTimeout, Disconnected, ProtocolError
-from lab.comms import CommsRecord, CommsSink, null_sink
+from lab.core.comms import CommsRecord, CommsSink, null_sink
 
 MAX_LINE = 128            # bytes, docs/protocols.md §1
 MAX_TAG = 9999            # request tags run 1..MAX_TAG and wrap

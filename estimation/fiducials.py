@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 from estimation.tag_quads import code_bits, fit_quads, identify, read_bits, ring_deviation
-from lab.geometry import Pose3, Rot3
+from lab.core.geometry import Pose3, Rot3
 
 __all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges",
            "apriltag_to_opencv_corners"]

@@ -24,7 +24,7 @@ from typing import Sequence
 import gtsam
 import numpy as np
 
-from lab.geometry import Pose3
+from lab.core.geometry import Pose3
 
 
 @dataclass(frozen=True)

@@ -45,8 +45,8 @@ from estimation.rig_model import (AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_
                                   RigGeometry, distortion_prior_sigmas, radial_basis,
                                   ViewMotion, cal3_s2, chain_factor, corner_factor, nees, side_ratio, tag_prior_noise,
                                   undistort_px)
-from lab.geometry import Pose3, Rot3, to_xyzrpy
-from lab.rig_calibration import RigCalibration
+from lab.core.geometry import Pose3, Rot3, to_xyzrpy
+from lab.core.rig_calibration import RigCalibration
 
 C = gtsam.symbol_shorthand.C
 T = gtsam.symbol_shorthand.T

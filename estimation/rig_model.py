@@ -40,9 +40,9 @@ from typing import Sequence
 import gtsam
 import numpy as np
 
-from lab.config import CalibrationConfig, Rig
-from lab.geometry import Pose3, Rot3, from_xyzrpy
-from lab.rig_calibration import RigCalibration
+from lab.core.config import CalibrationConfig, Rig
+from lab.core.geometry import Pose3, Rot3, from_xyzrpy
+from lab.core.rig_calibration import RigCalibration
 
 AXIS, BASE, MOUNT, INTRINSICS, LIFT = (gtsam.symbol(c, 0) for c in "abmkl")
 # the true lens's radial distortion against the camera file's: (dk1, dk2), a 2-vector variable

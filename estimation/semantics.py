@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lab.geometry import Pose3, Rot3
+from lab.core.geometry import Pose3, Rot3
 
 THETA_MIN_RAD = math.radians(4.69)
 THETA_MAX_RAD = math.radians(90.0)

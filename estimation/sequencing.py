@@ -29,7 +29,7 @@ import numpy as np
 
 from estimation.truss_covariance import LocalSensitivities, plan_jacobian
 from estimation.truss_geometry import DEGENERATE_RATIO, DegenerateBaseError, Plan, Step, height_ratio
-from lab.structures.trusses import TrussModel
+from lab.core.structures.trusses import TrussModel
 
 __all__ = [
     "three_cliques",

@@ -42,9 +42,9 @@ from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSIC
                                   chain_factor, corner_factor, distortion_prior_sigmas, radial_basis, tag_prior_noise,
                                   undistort_px, undistorted_side_ratio)
 from estimation.semantics import DeployCheck, deployable_check
-from lab.geometry import Pose3, Rot3
-from lab.rig_calibration import RigCalibration
-from lab.structures.borg import BorgModel
+from lab.core.geometry import Pose3, Rot3
+from lab.core.rig_calibration import RigCalibration
+from lab.core.structures.borg import BorgModel
 
 OBSERVATIONS = ("corners", "corner-info", "pose")
 C = gtsam.symbol_shorthand.C   # camera views

@@ -20,8 +20,8 @@ from typing import Mapping
 
 import numpy as np
 
-from lab.geometry import Pose3, Rot3
-from lab.structures.borg import BorgModel
+from lab.core.geometry import Pose3, Rot3
+from lab.core.structures.borg import BorgModel
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ import numpy as np
 
 from estimation.truss_geometry import Step, place_step, step_sensitivity
 from estimation.truss_mle import StepTiming, TrussAssemblyFrame
-from lab.structures.trusses import TrussModel
+from lab.core.structures.trusses import TrussModel
 
 __all__ = ["TrussEKF"]
 

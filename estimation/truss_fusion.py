@@ -22,8 +22,8 @@ import numpy as np
 
 from estimation.truss_geometry import Plan, Step
 from estimation.truss_mle import TrussMLE
-from lab.geometry import look_at
-from lab.structures.trusses import TrussModel
+from lab.core.geometry import look_at
+from lab.core.structures.trusses import TrussModel
 
 __all__ = ["CameraRig", "ring_rig", "TrussCameraMLE"]
 

@@ -24,7 +24,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from lab.errors import LabError
+from lab.core.errors import LabError
 
 __all__ = [
     "DegenerateBaseError",

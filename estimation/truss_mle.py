@@ -35,7 +35,7 @@ import gtsam
 import numpy as np
 
 from estimation.truss_geometry import DegenerateBaseError, Plan, Step, gauge_transform, place_step, to_gauge
-from lab.structures.trusses import TrussModel
+from lab.core.structures.trusses import TrussModel
 
 __all__ = ["TrussAssemblyFrame", "TrussMLE", "StepTiming"]
 

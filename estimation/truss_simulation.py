@@ -18,7 +18,7 @@ import numpy as np
 
 from estimation.truss_geometry import DegenerateBaseError, Plan, Step, place_step
 from estimation.truss_mle import TrussAssemblyFrame, TrussMLE
-from lab.structures.trusses import TrussModel
+from lab.core.structures.trusses import TrussModel
 
 _MAX_REDRAWS = 100
 

@@ -28,8 +28,8 @@ import numpy as np
 
 from estimation.precision import module_position_covariance, module_sigma
 from estimation.semantics import DeployCheck, closeout_zone
-from lab.geometry import Pose3, pose_error
-from lab.structures.borg import BorgModel
+from lab.core.geometry import Pose3, pose_error
+from lab.core.structures.borg import BorgModel
 
 
 @dataclass(frozen=True)

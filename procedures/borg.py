@@ -30,12 +30,12 @@ import numpy as np
 
 from estimation.sf_graphslam import SlamConfig
 from estimation.verification import Tolerance, Tolerances
-from lab.config import MODULE_KINDS, VerificationConfig
-from lab.errors import UserError
-from lab.geometry import pose_error
-from lab.recorder import messages as m
-from lab.recorder import topics
-from lab.structures.borg import BorgModel, build_borg
+from lab.core.config import MODULE_KINDS, VerificationConfig
+from lab.core.errors import UserError
+from lab.core.geometry import pose_error
+from lab.core.recorder import messages as m
+from lab.core.recorder import topics
+from lab.core.structures.borg import BorgModel, build_borg
 from procedures.borg_measure import ModuleResult
 from procedures.runner import RunContext, StepSpec, StopRun
 from procedures.setup import Bench
@@ -136,8 +136,8 @@ class BorgProcedure:
         self.calibration_source = f"the rig file {rig.source}'s nominal geometry"
         cal_file = calibration or rig.calibration.file
         if cal_file is not None:
-            from lab.rig_calibration import load_rig_calibration
-            from lab.rig_calibration_check import check_for_rig
+            from lab.core.rig_calibration import load_rig_calibration
+            from lab.core.rig_calibration_check import check_for_rig
 
             self.rig_calibration = load_rig_calibration(cal_file)
             # its meaning, before anything moves: a file for another bench or structure, or values
@@ -480,7 +480,7 @@ class BorgProcedure:
         r.bound_position_m, r.bound_rotation_rad, r.bound_position_rms_m = ms.position_m, ms.rotation_rad, ms.position_rms_m
 
     def _take_truth(self, record: dict[str, Any]) -> None:
-        from lab.geometry import Pose3
+        from lab.core.geometry import Pose3
 
         truth = record.get("truth")
         if truth is None:

@@ -13,12 +13,12 @@ import numpy as np
 from estimation.fiducials import Detection, TagDetector
 from estimation.rig_model import RigGeometry, ViewMotion
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
-from lab.rig_calibration import RigCalibration
+from lab.core.rig_calibration import RigCalibration
 from estimation.tag_elimination import eliminate_tags
 from estimation.verification import Tolerances, Verdict, verify_module
-from lab.geometry import Pose3, from_xyzquat, to_xyzquat
-from lab.recorder import messages as m
-from lab.structures.borg import BorgModel
+from lab.core.geometry import Pose3, from_xyzquat, to_xyzquat
+from lab.core.recorder import messages as m
+from lab.core.structures.borg import BorgModel
 
 
 @dataclass

@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from drivers.camera import Intrinsics
-from lab.errors import UserError
+from lab.core.errors import UserError
 
 __all__ = [
     "DEFAULT_BOARD", "BoardSpec", "ChessboardSpec", "parse_board", "Detection", "BoardDetector",
@@ -532,7 +532,7 @@ def compare_intrinsics(estimate: Intrinsics, truth: Intrinsics, grid: int = 24) 
 
 class CalibrationSession:
     """One calibration: frames go in one at a time (each detected at once, so a live operator
-    hears whether it counted), `finish()` calibrates.  With a `recorder` (lab.recorder.RunRecorder)
+    hears whether it counted), `finish()` calibrates.  With a `recorder` (lab.core.recorder.RunRecorder)
     every frame is a step with its image and detection, and the result a final step with the
     intrinsics as foxglove.CameraCalibration."""
 
@@ -572,7 +572,7 @@ class CalibrationSession:
         if self.recorder is None:
             d = self.detector.detect(image, label)
         else:
-            from lab.recorder import topics
+            from lab.core.recorder import topics
 
             with self.recorder.step(f"view {self._steps}", self._steps, {"frame": label}):
                 self.recorder.log_image(topics.CAMERA_IMAGE, image, t_s, self.camera)
@@ -591,7 +591,7 @@ class CalibrationSession:
         so the report says how much the calibration improved on it."""
         if self.recorder is None:
             return self._finish(fit_k3, min_frames, truth, nominal)
-        from lab.recorder import topics
+        from lab.core.recorder import topics
 
         self._steps += 1
         with self.recorder.step("calibrate", self._steps, {"fit_k3": fit_k3, "min_frames": min_frames}):

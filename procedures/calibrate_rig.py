@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from lab.errors import UserError
-from lab.recorder import topics
+from lab.core.errors import UserError
+from lab.core.recorder import topics
 from procedures.runner import RunContext, StepSpec, StopRun
 from procedures.setup import Bench
 
@@ -58,7 +58,7 @@ class RigCalibrationProcedure:
                  angle_step_rad: float | None = None) -> None:
         from drivers.stewart_kinematics import StewartKinematics
         from estimation.rig_model import RigGeometry
-        from lab.structures.borg import build_borg
+        from lab.core.structures.borg import build_borg
         from procedures import rig_survey
 
         rig = bench.rig

@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lab.errors import UserError
-from lab.locks import FileLock
-from lab.recorder import messages as m
-from lab.recorder import topics
-from lab.recorder.reader import ScanState, iter_messages
+from lab.core.errors import UserError
+from lab.core.locks import FileLock
+from lab.core.recorder import messages as m
+from lab.core.recorder import topics
+from lab.core.recorder.reader import ScanState, iter_messages
 
 RUN_FILE = "run.mcap"
 RESUME_FILE = "run.resume.mcap"

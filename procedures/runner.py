@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Protocol
 
-from lab.errors import LabError, UserError
+from lab.core.errors import LabError, UserError
 
 RUN_FILE = "run.mcap"
 RUN_INFO = "run.json"

@@ -7,9 +7,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lab.comms import CommsRecord
-from lab.config import Rig, load_rig
-from lab.scenario import Scenario, load_scenario
+from lab.core.comms import CommsRecord
+from lab.core.config import Rig, load_rig
+from lab.core.scenario import Scenario, load_scenario
 
 
 class CommsRelay:
@@ -85,14 +85,14 @@ def lift_to_zero(bench: Bench, run: Any, always: bool = False) -> None:
 def check_speedup(speedup: float | None, rig: Rig | None = None) -> None:
     """Simulated devices may run faster than the hardware, within reason: an infinite or huge
     speed-up makes every timeout zero.  With the rig, slower only as far as its simulated devices
-    can still do their work: each at least the slowest speed a rig file may give it (lab/config.py,
+    can still do their work: each at least the slowest speed a rig file may give it (lab/core/config.py,
     below which a device "never finishes a run"), settling within the longest settle a rig file may
     give, and a whole travel of the turntable or the lift within the longest move the drivers
     accept (drivers.motion.MAX_MOVE_S) -- else the run would start, home, and fail (or report a
     speed of 0.000) with its directory left behind."""
     import math
 
-    from lab.errors import UserError
+    from lab.core.errors import UserError
 
     if speedup is not None and not (math.isfinite(speedup) and 0 < speedup <= MAX_SPEEDUP):
         raise UserError(f"--speedup must be a number in (0, {MAX_SPEEDUP:g}], got {speedup!r}")
@@ -116,7 +116,7 @@ def min_speedup(rig: Rig) -> SlowestSpeedup:
     """The smallest speed-up at which every simulated device of `rig` can still work (see
     `check_speedup`)."""
     from drivers.motion import MAX_MOVE_S
-    from lab.config import SIM_DEVICE_KEYS, SIM_MAXIMA
+    from lab.core.config import SIM_DEVICE_KEYS, SIM_MAXIMA
 
     assert rig.sim is not None
     out = SlowestSpeedup(0.0, "")

@@ -29,8 +29,8 @@ import numpy as np
 
 from estimation.fiducials import tag_object_points
 from estimation.precision import covariance_from_information, module_sigma, view_information
-from lab.geometry import Pose3, Rot3, from_xyzrpy
-from lab.structures.borg import BorgModel
+from lab.core.geometry import Pose3, Rot3, from_xyzrpy
+from lab.core.structures.borg import BorgModel
 
 
 def unoccluded(lo: np.ndarray, hi: np.ndarray, rows: np.ndarray, overlap: float) -> np.ndarray:

@@ -22,10 +22,10 @@ import numpy as np
 
 from estimation.truss_geometry import DegenerateBaseError, Plan, Step, place_step
 from estimation.truss_simulation import make_estimator
-from lab.errors import UserError
-from lab.recorder import messages as m
-from lab.recorder import topics
-from lab.structures.trusses import build_truss
+from lab.core.errors import UserError
+from lab.core.recorder import messages as m
+from lab.core.recorder import topics
+from lab.core.structures.trusses import build_truss
 from procedures.runner import RunContext, StepSpec
 from procedures.setup import Bench
 

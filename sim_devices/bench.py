@@ -15,9 +15,9 @@ import threading
 import urllib.parse
 from dataclasses import dataclass, field
 
-from lab.config import Rig, load_rig
-from lab.errors import UserError
-from lab.scenario import Scenario
+from lab.core.config import Rig, load_rig
+from lab.core.errors import UserError
+from lab.core.scenario import Scenario
 from sim_devices.camera import camera_routes
 from sim_devices.faults import FaultInjector
 from sim_devices.http_server import HttpDeviceServer
@@ -190,7 +190,7 @@ def _untold(rig: Rig) -> Rig:
     """The rig as the software gets it: the bench's true errors stay in the world."""
     from dataclasses import replace
 
-    from lab.rig_error import RigError
+    from lab.core.rig_error import RigError
 
     if rig.sim is None:
         return rig

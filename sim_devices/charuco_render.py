@@ -52,7 +52,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from lab.geometry import Pose3, Rot3
+from lab.core.geometry import Pose3, Rot3
 from sim_devices.camera import encode_frame
 from sim_devices.render import _canvas  # the shared ideal-canvas + distortion remap tables
 from sim_devices.render import Defocus, sensor_readout
@@ -356,7 +356,7 @@ def imaged_calibration_session(
 ) -> list[tuple[Pose3, np.ndarray]]:
     """`n` views of the board as `calibration_views` places them, rendered by a simulated rig's true
     camera (`sim_devices.world.true_camera`: `camera.K`, `camera.dist` the true lens) with its whole
-    imaging (`camera.imaging`, lab/imaging.py): the lens's blur and depth of field at the board's
+    imaging (`camera.imaging`, lab/core/imaging.py): the lens's blur and depth of field at the board's
     distance, `gain` (the frame's vignetting and light, `sim_devices.world.camera_gain_map`), the
     board's own light level in each view (1 + lighting_variation * U(-1, 1), drawn from `light_rng`:
     an operator moves the board under the room's lamps), photon shot and read noise, then the frame

@@ -57,7 +57,7 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
-from lab.geometry import Pose3
+from lab.core.geometry import Pose3
 
 __all__ = ["TagToRender", "TagLook", "Defocus", "render_tags", "render_grey", "tag_corners_px", "pixel_edge_response",
            "sensor_readout", "vignetting_gain", "lighting_field", "distortion_with_error", "QUIET_ZONE_CELLS",

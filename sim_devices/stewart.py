@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from lab.config import StewartGeometry
-from lab.geometry import Pose3, from_xyzrpy, to_xyzrpy
+from lab.core.config import StewartGeometry
+from lab.core.geometry import Pose3, from_xyzrpy, to_xyzrpy
 from sim_devices.line_server import E_RANGE, E_SYNTAX, LineDevice, Refuse, decimal, nargs
 from sim_devices.motion import Axis
 

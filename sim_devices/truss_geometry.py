@@ -1,10 +1,10 @@
 """The BORG truss as solid things that hide tags: its struts and node bodies, where they really are.
 
-`truss_occluders` turns the design model (`lab.structures.borg`), the modules placed so far and
+`truss_occluders` turns the design model (`lab.core.structures.borg`), the modules placed so far and
 their TRUE poses (a module offset, a deployable stopped short) into 3-D occluders in the
 structure frame: every strut of a placed module as a cylinder between its two nodes, every node a
 placed strut ends at as a sphere.  `sim_devices.render_truss` draws them in front of (and behind)
-the tags.  Pure functions, SI units, poses as `lab.geometry.Pose3`.
+the tags.  Pure functions, SI units, poses as `lab.core.geometry.Pose3`.
 
 Sizes:
 - struts: 19.05 mm (3/4 in) diameter, the strut end that enters a node socket
@@ -41,8 +41,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from lab.geometry import Pose3
-from lab.structures.borg import BorgModel
+from lab.core.geometry import Pose3
+from lab.core.structures.borg import BorgModel
 
 __all__ = ["STRUT_DIAMETER_M", "NODE_DIAMETER_M", "TrussOccluders", "truss_occluders", "module_node_positions",
            "in_camera"]

@@ -3,7 +3,7 @@
 `SimWorld` holds every physical truth the device simulators act on and the camera sees:
 - the turntable axis (rad), the Stewart platform's six legs (m) and the lift's height (m), moved
   by their controllers;
-- the true rig (`TrueRig`): the rig file plus the rig's errors (`lab/rig_error.py`: the rig's
+- the true rig (`TrueRig`): the rig file plus the rig's errors (`lab/core/rig_error.py`: the rig's
   `[sim.rig_error]`, or the scenario's `[rig_error]`), which the software is never told -- the
   camera mount, the Stewart base, the turntable's rotation axis (offset and tilt), each turntable
   tag's placement, the lens' focal length and principal point, the lift's travel direction, and a
@@ -21,7 +21,7 @@
   tags they hide), per-module pose errors, partial deployments, displaced tags;
 - the lab's lamp (`LIGHT_WORLD`), which shades the truss;
 - each IPJR's actuator (`sim_devices.ipjr.IpjrActuator`), and the strut it is attached to;
-- the camera as it really images (`TrueCamera`, `lab/imaging.py`: the rig's `[sim.camera]` and
+- the camera as it really images (`TrueCamera`, `lab/core/imaging.py`: the rig's `[sim.camera]` and
   `[sim.tags]` with the scenario's `[camera]` / `[tags]` keys replacing theirs): the true lens
   (focal scale, principal point and a distortion that differs from the calibration file by
   `distortion_error_px` at the frame's corners), its depth of field, vignetting and the light
@@ -53,13 +53,13 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from lab.config import Rig
-from lab.errors import UserError
-from lab.geometry import Pose3, Rot3, to_xyzrpy
-from lab.imaging import IDEAL, Imaging
-from lab.rig_error import RigError
-from lab.scenario import BorgFault, Scenario
-from lab.structures.borg import BorgModel, build_borg
+from lab.core.config import Rig
+from lab.core.errors import UserError
+from lab.core.geometry import Pose3, Rot3, to_xyzrpy
+from lab.core.imaging import IDEAL, Imaging
+from lab.core.rig_error import RigError
+from lab.core.scenario import BorgFault, Scenario
+from lab.core.structures.borg import BorgModel, build_borg
 from sim_devices.ipjr import IpjrActuator
 from sim_devices.motion import Axis
 from sim_devices.render import Defocus, TagLook, distortion_with_error, lighting_field, vignetting_gain
@@ -380,7 +380,7 @@ class SimWorld:
         self._looks: dict[int, TagLook] = {}
         self._print_scale: dict[int, float] = {}
         if rig.camera:
-            # the rig's imaging, with the keys the scenario names replaced (lab/imaging.py)
+            # the rig's imaging, with the keys the scenario names replaced (lab/core/imaging.py)
             imaging = sim.imaging.with_overrides(self.scenario.camera.overrides())
             self.camera = true_camera(rig, imaging, self.rig_error, self.seed)
             if self.borg is not None:

@@ -4,11 +4,12 @@ tests/test_reliability_runs.py)."""
 
 from __future__ import annotations
 
-from procedures.studies.bench_faults import campaign
+from lab.cli import main
+from lab.studies.bench_faults import campaign
 
 
 def test_the_quick_slice_of_the_fault_campaign_has_no_bad_case(tmp_path):
-    report = campaign(quick=True, only=["devices", "inputs", "protocol"], work=tmp_path)
+    report = campaign(quick=True, only=["devices", "inputs", "protocol"], work=tmp_path, lab_main=main)
     assert report.cases >= 25
     assert report.bad == [], report.bad
     assert report.ok == report.cases

@@ -16,8 +16,8 @@ import pytest
 
 from drivers.camera import Frame, Intrinsics, load_calibration
 from lab.cli import build_parser, main
-from lab.config import load_rig
-from lab.errors import UserError
+from lab.core.config import load_rig
+from lab.core.errors import UserError
 from procedures.calibrate import (DEFAULT_BOARD, DEFAULT_MIN_CORNERS, DEFAULT_MIN_FRAMES, BoardDetector,
                                   CalibrationSession, Detection, NotEnoughViews, calibrate, capture_live,
                                   parse_board)
@@ -102,8 +102,8 @@ def test_frames_dir_gives_the_same_calibration(sim_run, tmp_path, capsys):
 
 
 def test_recorded_run_holds_frames_detections_and_result(sim_run):
-    from lab.recorder import topics
-    from lab.recorder.reader import iter_messages, read_summary
+    from lab.core.recorder import topics
+    from lab.core.recorder.reader import iter_messages, read_summary
 
     s = read_summary(sim_run["mcap"])
     assert s.result == "completed"
@@ -167,7 +167,7 @@ def test_a_bad_view_is_dropped_and_the_rest_still_calibrate():
 
 
 def test_frontal_views_in_the_middle_draw_warnings():
-    from lab.geometry import Pose3, Rot3
+    from lab.core.geometry import Pose3, Rot3
 
     truth, board = _truth(), BOARD.make()
     bw, bh = BOARD.size_m
@@ -344,8 +344,8 @@ def test_live_auto_grabs_from_the_rig_camera_and_records(sim_run, tmp_path, caps
     assert 'calibration = "cam.json"' in stdout              # the rig file sits next to it
     cal, truth = load_calibration(out), _truth()
     assert abs(cal.K[0, 0] / truth.K[0, 0] - 1) < 0.01
-    from lab.recorder import topics
-    from lab.recorder.reader import read_summary
+    from lab.core.recorder import topics
+    from lab.core.recorder.reader import read_summary
 
     s = read_summary(mcap)
     assert s.result == "completed" and s.topic_counts[topics.CAMERA_IMAGE] == 11

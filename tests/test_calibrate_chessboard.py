@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from lab.cli import main
-from lab.errors import UserError
+from lab.core.errors import UserError
 from procedures.calibrate import ChessboardSpec, CalibrationSession, parse_board, read_frames
 
 DATA = Path(__file__).parent / "data" / "chessboard"
@@ -45,8 +45,8 @@ def test_left_camera_calibrates_to_opencvs_focal_length_with_a_real_rms(tmp_path
     assert np.asarray(r["dist"])[0] < -0.2          # the lens's strong barrel distortion
     assert "13 chessboard views" in json.loads(out.read_text())["source"]
 
-    from lab.recorder import topics
-    from lab.recorder.reader import iter_messages
+    from lab.core.recorder import topics
+    from lab.core.recorder.reader import iter_messages
 
     kinds = [m.message.kind for m in iter_messages(mcap, topics.RECORDS)]
     assert kinds.count("chessboard_detection") == 13 and "camera_calibration" in kinds

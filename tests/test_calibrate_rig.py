@@ -18,12 +18,12 @@ import pytest
 
 from estimation.rig_model import nees
 from lab.cli import main
-from lab.config import load_rig
-from lab.geometry import Pose3, Rot3
-from lab.recorder import topics
-from lab.recorder.reader import iter_messages, read_summary
-from lab.rig_calibration import load_rig_calibration
-from lab.scenario import Scenario
+from lab.core.config import load_rig
+from lab.core.geometry import Pose3, Rot3
+from lab.core.recorder import topics
+from lab.core.recorder.reader import iter_messages, read_summary
+from lab.core.rig_calibration import load_rig_calibration
+from lab.core.scenario import Scenario
 from sim_devices.world import SimWorld
 
 FAST = ["--auto", "--json", "--speedup", "100"]

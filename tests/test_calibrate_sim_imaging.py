@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from lab.cli import main
-from lab.config import load_rig
+from lab.core.config import load_rig
 from procedures.calibrate import DEFAULT_BOARD, BoardDetector, parse_board
 from sim_devices.camera import encode_frame
 from sim_devices.charuco_render import (board_size_m, calibration_session, calibration_views, charuco_corners_px,

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from lab import runs as catalogue
+from lab.core import runs as catalogue
 from lab.cli import main
 
 

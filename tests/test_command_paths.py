@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 
 from lab.cli import main
-from lab.config import load_rig
-from lab.errors import UserError
-from lab.paths import check_output_dir, check_output_file
+from lab.core.config import load_rig
+from lab.core.errors import UserError
+from lab.core.paths import check_output_dir, check_output_file
 from procedures.setup import min_speedup
 
 SURVEY = ["calibrate", "rig", "--auto", "--quiet", "--speedup", "100", "--angle-step-deg", "90"]
@@ -100,7 +100,7 @@ def test_path_checks(tmp_path, afile):
 def test_a_rig_whose_own_speedup_is_too_slow_is_refused_naming_its_key(tmp_path):
     import shutil
 
-    from lab.config import default_rig_path
+    from lab.core.config import default_rig_path
 
     src = default_rig_path()
     shutil.copy(src.parent / "sim_camera.json", tmp_path / "sim_camera.json")

@@ -11,7 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from lab.imaging import IDEAL, scenario_tables
+from lab.core.imaging import IDEAL, scenario_tables
 from procedures.console import Console, ConsoleRecorder
 
 LAB = [sys.executable, "-m", "lab"]

@@ -18,8 +18,8 @@ from drivers.errors import Disconnected
 from drivers.ownership import DeviceBusy, claim, held_keys, release
 from drivers.testing import fast_sim_rig
 from drivers.transport import LineTransport
-from lab import locks
-from lab.errors import UserError
+from lab.core import locks
+from lab.core.errors import UserError
 
 # a process that claims the turntable at argv[1] and reports what happened (its environment is the
 # test's to choose)
@@ -149,7 +149,7 @@ def test_a_lock_held_by_one_user_refuses_another():
     directory), and the refusal names the holding user."""
     import pwd
 
-    from procedures.studies.bench_faults_links import _as_user
+    from lab.studies.bench_faults_links import _as_user
 
     nobody = pwd.getpwnam("nobody").pw_uid
     url = "socket://127.0.0.1:6"

@@ -13,7 +13,7 @@ import pytest
 from drivers.camera import Camera, Intrinsics, is_snapshot_url, load_calibration, save_calibration
 from drivers.errors import Disconnected, RigMismatch
 from drivers.testing import fast_sim_rig
-from lab.errors import UserError
+from lab.core.errors import UserError
 from sim_devices.bench import start_sim_bench
 from sim_devices.render import tag_corners_px
 

@@ -10,7 +10,7 @@ import pytest
 from drivers.errors import OutOfRange
 from drivers.ipjr import Ipjr
 from drivers.testing import fast_sim_rig
-from lab.comms import MemoryComms
+from lab.core.comms import MemoryComms
 from sim_devices.bench import start_sim_bench
 
 

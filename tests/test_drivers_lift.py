@@ -11,11 +11,11 @@ import pytest
 from drivers.errors import DeviceFault, OutOfRange, RigMismatch
 from drivers.lift import Lift
 from drivers.testing import ScriptedLineDevice, fast_sim_rig
-from lab.comms import MemoryComms
-from lab.config import load_rig
-from lab.geometry import Pose3, Rot3
-from lab.rig_error import RigError
-from lab.scenario import Scenario
+from lab.core.comms import MemoryComms
+from lab.core.config import load_rig
+from lab.core.geometry import Pose3, Rot3
+from lab.core.rig_error import RigError
+from lab.core.scenario import Scenario
 from sim_devices.bench import start_sim_bench
 
 RIG = load_rig()

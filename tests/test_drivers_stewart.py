@@ -16,9 +16,9 @@ from drivers.stewart import Stewart
 from drivers.stewart_kinematics import StewartKinematics
 from drivers.testing import fast_sim_rig
 from lab.cli import main
-from lab.comms import MemoryComms
-from lab.config import load_rig
-from lab.geometry import from_xyzrpy, pose_error, to_xyzrpy
+from lab.core.comms import MemoryComms
+from lab.core.config import load_rig
+from lab.core.geometry import from_xyzrpy, pose_error, to_xyzrpy
 from sim_devices.bench import start_sim_bench
 from sim_devices.stewart import platform_pose
 
@@ -86,7 +86,7 @@ def test_lab_stewart_ik_json_shape(capsys):
 
 
 def test_lab_stewart_ik_with_a_rig_file(tmp_path, capsys):
-    from lab.config import default_rig_path
+    from lab.core.config import default_rig_path
 
     text = default_rig_path().read_text().replace("home_height_m = 0.40", "home_height_m = 0.42")
     text = text.replace('calibration = "sim_camera.json"', f'calibration = "{default_rig_path().parent / "sim_camera.json"}"')
@@ -100,8 +100,8 @@ def test_lab_stewart_ik_with_a_rig_file(tmp_path, capsys):
 def bench():
     # an ideal rig: these tests compare the driver's kinematics with the simulator's, not the rig file
     # with the truth (tests/test_rig_error.py does that)
-    from lab.rig_error import RigError
-    from lab.scenario import Scenario
+    from lab.core.rig_error import RigError
+    from lab.core.scenario import Scenario
 
     with start_sim_bench(fast_sim_rig(), Scenario(rig_error=RigError()), speedup=1000) as b:
         yield b

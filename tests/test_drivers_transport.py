@@ -12,7 +12,7 @@ import pytest
 from drivers.errors import DeviceFault, DeviceTimeout, Disconnected, ProtocolError
 from drivers.testing import ScriptedHttpDevice, ScriptedLineDevice, fast_sim_rig
 from drivers.transport import HttpTransport, LineTransport, open_transport, parse_reply, port_lock
-from lab.comms import MemoryComms
+from lab.core.comms import MemoryComms
 from sim_devices.bench import start_sim_bench
 
 

@@ -1,4 +1,4 @@
-"""lab.executor: trials give the same results whichever executor runs them (in this process, local
+"""lab.core.executor: trials give the same results whichever executor runs them (in this process, local
 worker processes, a Dask cluster), an interrupted study keeps its finished trials and resumes from
 them, and bad --workers / --scheduler values are one-line errors."""
 
@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from lab.errors import UserError
-from lab.executor import (InProcess, Journal, LocalProcesses, Study, Trial, make_executor, make_trials, trial_seed,
-                          without_executor_args)
-from lab.executor.compare import differences, strip_timings
+from lab.core.errors import UserError
+from lab.core.executor import (InProcess, Journal, LocalProcesses, Study, Trial, make_executor, make_trials, trial_seed,
+                               without_executor_args)
+from lab.core.executor.compare import differences, strip_timings
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -153,7 +153,7 @@ def test_a_journal_cut_short_or_of_another_study(tmp_path, capsys):
 
 STUDY_SCRIPT = """
 import sys
-from lab.executor import Journal, LocalProcesses, Study, make_trials
+from lab.core.executor import Journal, LocalProcesses, Study, make_trials
 
 def slow(trial):
     import time
@@ -196,8 +196,8 @@ def test_ctrl_c_on_worker_processes_keeps_finished_trials(tmp_path):
 def test_mle_study_identical_in_process_on_workers_and_on_dask():
     """The issue's test: a small study under every executor, the same figures apart from timings."""
     distributed = pytest.importorskip("distributed", reason="Dask is the `distributed` extra")
-    from procedures.studies import bench_mle
-    from lab.executor import DaskCluster
+    from lab.studies import bench_mle
+    from lab.core.executor import DaskCluster
 
     def run(executor) -> dict:
         with Study(executor) as study:
@@ -238,7 +238,7 @@ def test_without_dask_the_error_names_the_extra(monkeypatch):
 
 
 def test_a_module_the_cluster_cannot_import_is_named():
-    from lab.executor.backends import _missing_module
+    from lab.core.executor.backends import _missing_module
 
     try:
         try:
@@ -252,7 +252,7 @@ def test_a_module_the_cluster_cannot_import_is_named():
 
 def test_no_scheduler_listening_is_one_line():
     pytest.importorskip("distributed")
-    from lab.executor import DaskCluster
+    from lab.core.executor import DaskCluster
 
     with pytest.raises(UserError, match="no Dask scheduler answered"):
         DaskCluster("tcp://127.0.0.1:9", connect_timeout_s=1.0)

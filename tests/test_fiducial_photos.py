@@ -140,8 +140,8 @@ def test_apriltag3_corners_converted_land_on_the_rendered_truth():
     counter-clockwise; OpenCV 4's marker is AprilTag's image turned 180 deg.  Converted, its corners
     must match the renderer's projected truth, corner for corner."""
     pytest.importorskip("pupil_apriltags")
-    from procedures.studies import apriltag3
-    from lab.geometry import Pose3, Rot3
+    from lab.studies import apriltag3
+    from lab.core.geometry import Pose3, Rot3
     from sim_devices.render import render_tags, tag_corners_px
 
     K = np.array([[914.0, 0.0, 639.5], [0.0, 914.0, 359.5], [0.0, 0.0, 1.0]])

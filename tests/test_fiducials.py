@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from estimation.fiducials import TagDetector
-from lab.geometry import Pose3, Rot3, pose_error
+from lab.core.geometry import Pose3, Rot3, pose_error
 from sim_devices.render import render_tags, tag_corners_px
 
 # the simulated rig's camera (lab/rigs/sim.toml)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from lab.config import default_rig_path
+from lab.core.config import default_rig_path
 
 LAB = [sys.executable, "-m", "lab"]
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,10 +14,10 @@ from estimation.corner_noise import measured_corner_noise
 from estimation.rig_calibration import _measured_glue_sigma
 from estimation.rig_model import GAUGE_SIGMA, AXIS, BASE, INTRINSICS, MOUNT, RigGeometry, cal3_s2, tag_prior_noise
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
-from lab.config import load_rig
-from lab.geometry import Pose3
-from lab.rig_calibration import RigCalibration, rig_calibration_from_json
-from lab.structures.borg import build_borg
+from lab.core.config import load_rig
+from lab.core.geometry import Pose3
+from lab.core.rig_calibration import RigCalibration, rig_calibration_from_json
+from lab.core.structures.borg import build_borg
 
 RIG = load_rig()
 MODEL = build_borg(3)
@@ -126,7 +126,7 @@ def test_the_joint_posterior_and_the_measured_corner_sigma_round_trip_through_th
     assert back.corner_sigma_px == 0.05
     bad = cal.to_json()
     bad["joint_covariance"] = bad["joint_covariance"][:-1]
-    from lab.errors import UserError
+    from lab.core.errors import UserError
 
     with pytest.raises(UserError, match="joint_covariance"):
         rig_calibration_from_json(bad)
@@ -140,7 +140,7 @@ def test_a_run_on_a_poor_camera_keeps_its_verdicts_right_and_its_sigma_honest(tm
     import subprocess
     import sys
 
-    from procedures.studies.bench_trust import CAMERAS
+    from lab.studies.bench_trust import CAMERAS
 
     sc = tmp_path / "poor.toml"
     sc.write_text('seed = 5\n\n[[borg.fault]]\nkind = "module_offset"\nmodule = "5D"\noffset_m = [0.0, 0.008, 0.0]\n\n'

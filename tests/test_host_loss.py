@@ -16,7 +16,7 @@ import pytest
 
 import drivers
 from drivers.testing import fast_sim_rig
-from lab.config import RigError, default_rig_path, load_rig
+from lab.core.config import RigError, default_rig_path, load_rig
 from sim_devices.bench import start_sim_bench
 from sim_devices.watchdog import WATCHDOG_S, Firmware
 
@@ -204,7 +204,7 @@ def test_the_rig_file_chooses_the_firmware(tmp_path):
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
     """An uninterrupted BORG run against a `lab sim` in another process (made once, on demand)."""
-    from procedures.studies.bench_faults_links import Reference
+    from lab.studies.bench_faults_links import Reference
 
     return Reference(tmp_path_factory.mktemp("reference"), speedup=10)
 
@@ -214,8 +214,8 @@ def test_resume_after_a_run_killed_while_the_turntable_turns(tmp_path, uninterru
     """`lab run borg` against `lab sim` (another process, as a real bench is), SIGKILLed while the
     turntable turns: the turntable must have stopped half-way (or finished, on an older firmware),
     and `lab resume` must re-command the interrupted move and find what the uninterrupted run
-    found (the checks are the bench case's, procedures/studies/bench_faults_links.py)."""
-    from procedures.studies.bench_faults_links import resume_case
+    found (the checks are the bench case's, lab/studies/bench_faults_links.py)."""
+    from lab.studies.bench_faults_links import resume_case
 
     case = resume_case(tmp_path, uninterrupted, old=old)
     assert case.check() == ""

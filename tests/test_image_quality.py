@@ -1,4 +1,4 @@
-"""procedures/studies/image_quality.py: the edge-spread fit recovers a known blur from edges drawn in
+"""lab/studies/image_quality.py: the edge-spread fit recovers a known blur from edges drawn in
 closed form (a lone slanted edge, and a whole tag found by the project's detector), the noise
 figure recovers a known noise on a flat patch under uneven light, and the bench's section measures
 the photographs and the simulator's default frame side by side."""
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from procedures.studies import image_quality as iq
+from lab.studies import image_quality as iq
 
 
 def _slanted_edge(sigma: float, angle_deg: float, noise: float, rng, size: int = 40, dark: float = 30.0,
@@ -122,7 +122,7 @@ def test_tags_under_the_minimum_side_are_not_measured():
 
 
 def test_bench_section_measures_photographs_and_the_simulator_side_by_side():
-    from procedures.studies import bench_fiducials_photos as photos
+    from lab.studies import bench_fiducials_photos as photos
 
     q = photos.quality_study(quick=True)
     names = [r["image"] for r in q["rows"]]

@@ -16,11 +16,11 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.special import ndtr
 
-from lab.config import load_rig, parse_rig
-from lab.errors import UserError
-from lab.geometry import Pose3, Rot3
-from lab.imaging import IDEAL, Imaging
-from lab.scenario import Scenario, load_scenario, parse_scenario
+from lab.core.config import load_rig, parse_rig
+from lab.core.errors import UserError
+from lab.core.geometry import Pose3, Rot3
+from lab.core.imaging import IDEAL, Imaging
+from lab.core.scenario import Scenario, load_scenario, parse_scenario
 from sim_devices.camera import encode_frame
 from sim_devices.render import (COC_DIAMETER_PER_SIGMA, Defocus, TagLook, _marker_cells, distortion_with_error,
                                 lighting_field, render_grey, render_tags, tag_corners_px, vignetting_gain)
@@ -375,7 +375,7 @@ def test_a_bad_imaging_key_is_one_line_naming_the_file_and_the_key(tmp_path, tex
 def test_a_bad_rig_imaging_key_is_named(old, new, key):
     import tomllib
 
-    from lab.config import RigError, default_rig_path
+    from lab.core.config import RigError, default_rig_path
 
     text = default_rig_path().read_text()
     assert old in text
@@ -408,7 +408,7 @@ def test_the_software_sees_the_calibration_file_never_the_true_lens():
 def test_scenario_tables_set_every_imaging_key_whatever_the_rigs_defaults():
     import tomllib
 
-    from lab.imaging import scenario_tables
+    from lab.core.imaging import scenario_tables
 
     poor = IDEAL.with_overrides({"pixel_noise": 8.0, "jpeg_quality": 70, "flatness_m": 0.001})
     for im in (IDEAL, poor):

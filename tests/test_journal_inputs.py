@@ -11,10 +11,10 @@ from contextlib import redirect_stderr, redirect_stdout
 
 import pytest
 
-from lab.errors import UserError
-from lab.executor import Journal, make_trials
-from lab.executor.journal import finite_values
-from procedures.studies.bench_common import run_trial_study
+from lab.core.errors import UserError
+from lab.core.executor import Journal, make_trials
+from lab.core.executor.journal import finite_values
+from lab.studies.bench_common import run_trial_study
 
 
 def double(trial):                      # a study's trial function (module level: workers import it)
@@ -57,7 +57,7 @@ def test_an_edited_journal_line_is_refused_naming_it(tmp_path, edit):
 
 def test_a_nan_with_a_matching_checksum_is_still_not_a_result(tmp_path):
     """Values checked too: a line rewritten whole, checksum and all, must still be a result."""
-    from lab.executor.journal import _line
+    from lab.core.executor.journal import _line
 
     j = _interrupted_journal(tmp_path)
     lines = j.path.read_text().splitlines()

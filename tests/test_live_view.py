@@ -18,8 +18,8 @@ from pathlib import Path
 
 from rerun.chunk import RrdReader
 
-from lab.review import review, rrd_entity_paths
-from lab.viewer import free_port
+from lab.core.review import review, rrd_entity_paths
+from lab.core.viewer import free_port
 
 LAB = [sys.executable, "-m", "lab"]
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""The paper's method as a baseline (procedures/studies/paper_baseline.py): the sums of Algorithms 1-9 over
+"""The paper's method as a baseline (lab/studies/paper_baseline.py): the sums of Algorithms 1-9 over
 Euler 6-vectors, the same sums written as the paper's loops, the same terms on GTSAM, and Powell
 from zeros on a small instance."""
 
@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from procedures.studies import paper_baseline as pb
-from procedures.studies import slam_sim as ss
-from lab.geometry import Pose3, from_xyzrpy, pose_error, to_xyzrpy
-from lab.structures.borg import build_borg
+from lab.studies import paper_baseline as pb
+from lab.studies import slam_sim as ss
+from lab.core.geometry import Pose3, from_xyzrpy, pose_error, to_xyzrpy
+from lab.core.structures.borg import build_borg
 
 
 @pytest.fixture(scope="module")

@@ -16,8 +16,8 @@ import sys
 import time
 from pathlib import Path
 
-from lab.recorder import topics
-from lab.recorder.reader import iter_messages
+from lab.core.recorder import topics
+from lab.core.recorder.reader import iter_messages
 from procedures.pause import interactive
 
 LAB = [sys.executable, "-m", "lab"]

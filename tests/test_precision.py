@@ -18,8 +18,8 @@ from estimation.fiducials import Detection, tag_object_points
 from estimation.precision import bound_covariances, covariance_from_information, module_sigma, view_information
 from estimation.rig_model import OBLIQUE_EXPONENT
 from estimation.sf_graphslam import C, SfGraphSlam, SlamConfig
-from lab.geometry import Pose3, Rot3, look_at
-from lab.structures.borg import build_borg
+from lab.core.geometry import Pose3, Rot3, look_at
+from lab.core.structures.borg import build_borg
 
 LAB = [sys.executable, "-m", "lab"]
 K = np.array([[914.0, 0.0, 639.5], [0.0, 914.0, 359.5], [0.0, 0.0, 1.0]])
@@ -79,7 +79,7 @@ def test_the_bound_of_a_small_survey_is_the_information_model_and_the_estimators
 
 
 def test_a_planned_survey_meets_its_sigma_target():
-    from procedures.studies.bench_precision import PrecisionSetup, trial
+    from lab.studies.bench_precision import PrecisionSetup, trial
 
     # the first modules, planned for 0.15 mm; the graph's own 1-sigma of each verdict must reach it
     # (within the planner's approximation: views independent, tag at its design pose)

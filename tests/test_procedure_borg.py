@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from lab.recorder import topics
-from lab.recorder.reader import iter_messages, read_summary
+from lab.core.recorder import topics
+from lab.core.recorder.reader import iter_messages, read_summary
 
 LAB = [sys.executable, "-m", "lab"]
 FAULTS = Path(__file__).resolve().parents[1] / "docs" / "scenarios" / "structure_faults.toml"
@@ -113,7 +113,7 @@ def test_dry_run_checks_every_move_and_refuses_unreachable_plans(tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     assert "all planned moves are within limits" in r.stdout
     # a rig whose turntable cannot turn past 100 deg cannot show faces 3 and 4
-    import lab.config as config
+    import lab.core.config as config
 
     rig_dir = Path(config.default_rig_path()).parent
     shutil.copy(rig_dir / "sim_camera.json", tmp_path / "sim_camera.json")
@@ -179,11 +179,11 @@ def test_a_rig_with_errors_trusted_as_exact_flags_good_modules(tmp_path):
     """The failure the rig calibration fixes, kept measurable: twice the sim rig's errors, the rig
     file trusted as exact (--uncalibrated), and good modules are flagged; the same rig with the
     calibration in the graph (here from nominal priors, no survey) passes them."""
-    from lab.config import load_rig
+    from lab.core.config import load_rig
 
     e = load_rig().sim.rig_error.scaled(2.0).to_dict()
     table = "\n".join(f"{k} = {list(v) if isinstance(v, tuple) else v}" for k, v in e.items())
-    from lab.imaging import IDEAL, scenario_tables
+    from lab.core.imaging import IDEAL, scenario_tables
 
     # the ideal camera: this test is about the rig's errors (on the realistic camera, without a survey,
     # the first module's 1-sigma is 2.4 mm: honestly `uncertain`, not flagged)

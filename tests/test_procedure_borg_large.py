@@ -9,9 +9,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-import lab.config as config
-from lab.recorder import topics
-from lab.recorder.reader import iter_messages
+import lab.core.config as config
+from lab.core.recorder import topics
+from lab.core.recorder.reader import iter_messages
 
 LAB = [sys.executable, "-m", "lab"]
 

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lab.recorder import topics
-from lab.recorder.reader import iter_messages, read_summary
+from lab.core.recorder import topics
+from lab.core.recorder.reader import iter_messages, read_summary
 
 LAB = [sys.executable, "-m", "lab"]
 

@@ -22,8 +22,8 @@ from drivers.ipjr import Ipjr
 from drivers.stewart import Stewart
 from drivers.testing import ScriptedHttpDevice, ScriptedLineDevice
 from drivers.turntable import Turntable
-from lab.comms import MemoryComms
-from lab.config import load_rig
+from lab.core.comms import MemoryComms
+from lab.core.config import load_rig
 from sim_devices.bench import start_sim_bench
 
 RIG = load_rig()
@@ -135,7 +135,7 @@ def test_stewart_move_sends_ik_leg_lengths_in_mm():
         (b"LEGS?\n", b"OK " + legs + b"\n"),
     ]) as dev:
         reached = stewart_on(dev.url).move_to(pose)
-    from lab.geometry import to_xyzrpy
+    from lab.core.geometry import to_xyzrpy
 
     assert to_xyzrpy(reached) == pytest.approx(pose, abs=2e-5)   # FK of the reported legs
 

@@ -18,10 +18,10 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from lab.cli import main as lab_main
-from lab.comms import CommsRecord
-from lab.errors import UserError
-from lab.geometry import from_xyzrpy, look_at
-from lab.recorder import RunRecorder, iter_messages, messages as m, read_summary, recover, topics
+from lab.core.comms import CommsRecord
+from lab.core.errors import UserError
+from lab.core.geometry import from_xyzrpy, look_at
+from lab.core.recorder import RunRecorder, iter_messages, messages as m, read_summary, recover, topics
 
 
 def _standard_read(path: Path) -> list[tuple[str, str, object]]:
@@ -247,7 +247,7 @@ def test_a_finished_step_is_on_disk_before_the_next_begins(tmp_path: Path) -> No
 KILLED_WRITER = textwrap.dedent("""
     import sys, time
     import numpy as np
-    from lab.recorder import RunRecorder, topics, messages as m
+    from lab.core.recorder import RunRecorder, topics, messages as m
     rec = RunRecorder(sys.argv[1], "killed", {"steps": 100}, structure="borg:3", sync_interval_s=1e9)
     img = (np.arange(120 * 160) % 251).astype(np.uint8).reshape(120, 160)
     for i in range(100):

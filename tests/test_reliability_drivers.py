@@ -22,8 +22,8 @@ from drivers.stewart import Stewart
 from drivers.testing import ScriptedHttpDevice, ScriptedLineDevice, fast_sim_rig
 from drivers.transport import LineTransport
 from drivers.turntable import Turntable
-from lab.comms import MemoryComms
-from lab.config import load_rig
+from lab.core.comms import MemoryComms
+from lab.core.config import load_rig
 
 LAB = [sys.executable, "-m", "lab"]
 
@@ -113,7 +113,7 @@ def test_a_second_process_is_refused_a_device_this_one_owns(tmp_path):
     with drivers.connect(rig, only=["turntable"]) as devs:
         code = ("import drivers, sys; from drivers.testing import fast_sim_rig\n"
                 "rig = fast_sim_rig().with_urls({'turntable': 'socket://127.0.0.1:1'})\n"
-                "from lab.locks import set_holder\n"
+                "from lab.core.locks import set_holder\n"
                 "try:\n    drivers.connect(rig, only=['turntable'])\nexcept Exception as e:\n"
                 "    print(type(e).__name__, e); sys.exit(0)\nsys.exit(5)\n")
         r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
@@ -139,7 +139,7 @@ def test_same_process_claims_are_counted():
 
 def test_busy_error_is_a_user_error_naming_the_device():
     assert issubclass(DeviceBusy, Exception)
-    from lab.errors import UserError
+    from lab.core.errors import UserError
 
     assert issubclass(DeviceBusy, UserError)
 

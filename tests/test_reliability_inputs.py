@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from lab.cli import main as lab_main
-from lab.config import load_rig
+from lab.core.config import load_rig
 
 SIM = Path(__file__).resolve().parents[1] / "lab" / "rigs" / "sim.toml"
 
@@ -85,7 +85,7 @@ def test_speedup_is_bounded(capsys, value):
 
 
 def test_the_bounds_admit_every_shipped_scenario_and_the_papers_noise():
-    from lab.scenario import load_scenario, parse_scenario
+    from lab.core.scenario import load_scenario, parse_scenario
 
     for f in (Path(__file__).resolve().parents[1] / "docs" / "scenarios").glob("*.toml"):
         load_scenario(f)

@@ -7,7 +7,7 @@ import struct
 from pathlib import Path
 
 from lab.cli import main as lab_main
-from lab.recorder import RunRecorder, iter_messages, messages as m, read_summary, recover, topics
+from lab.core.recorder import RunRecorder, iter_messages, messages as m, read_summary, recover, topics
 
 
 def _log(path: Path, steps: int = 12) -> Path:

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from lab.recorder import topics
-from lab.recorder.reader import iter_messages, read_summary
+from lab.core.recorder import topics
+from lab.core.recorder.reader import iter_messages, read_summary
 
 LAB = [sys.executable, "-m", "lab"]
 TRUSS = ["run", "truss", "tetrahelix:6", "--auto", "--quiet", "--speedup", "20"]
@@ -166,7 +166,7 @@ def test_a_second_run_on_a_busy_bench_moves_and_stops_nothing(tmp_path):
     rig.write_text(text.split("\n[sim]")[0])            # the same devices, driven as hardware
     shutil.copy(Path(__file__).resolve().parents[1] / "lab" / "rigs" / "sim_camera.json", tmp_path)
     holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time, drivers; from lab.config import load_rig; from lab.locks import set_holder\n"
+        "import sys, time, drivers; from lab.core.config import load_rig; from lab.core.locks import set_holder\n"
         f"set_holder(run='first-run'); d = drivers.connect(load_rig({str(rig)!r}))\n"
         "print('held', flush=True); time.sleep(60)\n")], stdout=subprocess.PIPE, text=True)
     try:
@@ -252,7 +252,7 @@ class _Proc:
 
 
 def test_signals_during_the_clean_up_cannot_skip_a_stop(tmp_path):
-    from lab.recorder import RunRecorder
+    from lab.core.recorder import RunRecorder
     from procedures import runner
 
     proc = _Proc()

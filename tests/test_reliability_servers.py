@@ -11,7 +11,7 @@ import urllib.request
 import pytest
 
 from drivers.testing import fast_sim_rig
-from lab.config import load_rig
+from lab.core.config import load_rig
 from sim_devices import http_server
 from sim_devices.bench import ephemeral_port_range, ports_in_ephemeral_range, start_sim_bench
 

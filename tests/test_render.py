@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lab.geometry import Pose3, Rot3
+from lab.core.geometry import Pose3, Rot3
 from sim_devices.render import render_tags, tag_corners_px
 
 K = np.array([[914.0, 0.0, 639.5], [0.0, 914.0, 359.5], [0.0, 0.0, 1.0]])

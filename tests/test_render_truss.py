@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from estimation.fiducials import TagDetector
-from lab.config import load_rig
-from lab.geometry import Pose3, Rot3
-from lab.structures.borg import build_borg
+from lab.core.config import load_rig
+from lab.core.geometry import Pose3, Rot3
+from lab.core.structures.borg import build_borg
 from sim_devices.render import Defocus, render_tags, tag_corners_px
 from sim_devices.render_truss import STRUT_ALBEDO, draw_truss
 from sim_devices.truss_geometry import (NODE_DIAMETER_M, STRUT_DIAMETER_M, TrussOccluders, in_camera,

@@ -12,9 +12,9 @@ import pytest
 from rerun.chunk import McapReader, RrdReader
 
 from lab.cli import main as lab_main
-from lab.geometry import Pose3, from_xyzrpy, look_at, pose
-from lab.recorder import RunRecorder, messages as m, topics
-from lab.review import FrameTree, review
+from lab.core.geometry import Pose3, from_xyzrpy, look_at, pose
+from lab.core.recorder import RunRecorder, messages as m, topics
+from lab.core.review import FrameTree, review
 
 
 @pytest.fixture(autouse=True)
@@ -108,7 +108,7 @@ def test_review_save_writes_design_estimates_camera_path_and_plots(tmp_path: Pat
 
 
 def test_review_draws_the_borg_design_from_lab_structures_when_the_run_only_names_it(tmp_path: Path) -> None:
-    borg = pytest.importorskip("lab.structures.borg")
+    borg = pytest.importorskip("lab.core.structures.borg")
     model = borg.build_borg(3)
     run, rrd = tmp_path / "borg.mcap", tmp_path / "borg.rrd"
     _write_run(run, structure="borg:3", record_design=False)
@@ -130,7 +130,7 @@ def test_review_draws_the_borg_design_from_lab_structures_when_the_run_only_name
 
 
 def test_a_design_recorded_in_the_run_is_drawn_as_recorded(tmp_path: Path) -> None:
-    trusses = pytest.importorskip("lab.structures.trusses")
+    trusses = pytest.importorskip("lab.core.structures.trusses")
     model = trusses.build_truss("tetrahelix:6")
     run, rrd = tmp_path / "truss.mcap", tmp_path / "truss.rrd"
     with RunRecorder(run, "truss", {}, structure="borg:2") as rec:  # the recorded design wins over the name

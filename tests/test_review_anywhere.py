@@ -18,8 +18,8 @@ import pytest
 from rerun.chunk import RrdReader
 
 from lab.cli import main as lab_main
-from lab.review import review, rrd_entity_paths
-from lab.viewer import check_connect_url, choose_mode, has_display, rerun_command
+from lab.core.review import review, rrd_entity_paths
+from lab.core.viewer import check_connect_url, choose_mode, has_display, rerun_command
 from test_review import _write_run
 
 LAB = [sys.executable, "-m", "lab"]

@@ -8,9 +8,9 @@ import tomllib
 import numpy as np
 import pytest
 
-from lab.config import RigError, default_rig_path, load_rig, parse_rig
-from lab.errors import UserError
-from lab.geometry import Pose3, Rot3
+from lab.core.config import RigError, default_rig_path, load_rig, parse_rig
+from lab.core.errors import UserError
+from lab.core.geometry import Pose3, Rot3
 
 
 def sim_data() -> dict:

@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 
 from lab.cli import main
-from lab.config import default_rig_path
-from lab.rig_calibration_check import MAX_CONDITION, check_covariance
-from lab.errors import UserError
+from lab.core.config import default_rig_path
+from lab.core.rig_calibration_check import MAX_CONDITION, check_covariance
+from lab.core.errors import UserError
 
 FAST = ["--auto", "--quiet", "--speedup", "100"]
 
@@ -187,8 +187,8 @@ def test_the_same_run_with_the_good_file_completes(tmp_path, good):
 
 
 def test_most_of_the_structure_off_its_shape_is_the_rigs():
-    from lab.geometry import Pose3, Rot3
-    from lab.structures.borg import build_borg
+    from lab.core.geometry import Pose3, Rot3
+    from lab.core.structures.borg import build_borg
     from procedures.rig_consistency import structure_disagreement
 
     model = build_borg(3)

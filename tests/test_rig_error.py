@@ -9,11 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from lab.config import load_rig
-from lab.errors import UserError
-from lab.geometry import Pose3, Rot3
-from lab.rig_error import RigError
-from lab.scenario import Scenario, parse_scenario
+from lab.core.config import load_rig
+from lab.core.errors import UserError
+from lab.core.geometry import Pose3, Rot3
+from lab.core.rig_error import RigError
+from lab.core.scenario import Scenario, parse_scenario
 from sim_devices.world import SimWorld
 
 RIG = load_rig()
@@ -130,9 +130,9 @@ def test_the_software_is_not_told_the_rig_error():
 
 
 def test_a_sim_table_without_rig_error_means_an_ideal_rig():
-    from lab.config import SimConfig, parse_rig
+    from lab.core.config import SimConfig, parse_rig
     import tomllib
-    from lab.config import default_rig_path
+    from lab.core.config import default_rig_path
 
     assert SimConfig().rig_error == RigError()            # the record, not the rig-file exception
     data = tomllib.loads(default_rig_path().read_text())

@@ -10,9 +10,9 @@ import pytest
 from estimation.fiducials import tag_object_points
 from estimation.rig_model import (AXIS, BASE, INTRINSICS, LIFT, MOUNT, RigGeometry, ViewMotion, cal3_s2, chain_factor,
                                   corner_factor)
-from lab.config import load_rig
-from lab.geometry import Pose3, Rot3
-from lab.structures.borg import build_borg
+from lab.core.config import load_rig
+from lab.core.geometry import Pose3, Rot3
+from lab.core.structures.borg import build_borg
 
 RIG = load_rig()
 MODEL = build_borg(3)

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from lab.cli import main as lab_main
-from lab.runs import runs_root
+from lab.core.runs import runs_root
 
 LAB = [sys.executable, "-m", "lab"]
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,8 +85,8 @@ def test_a_run_still_going_is_running_not_killed(root: Path, tmp_path: Path) -> 
     """A run without a stop record whose directory lock is held (flock) is in progress."""
     import shutil
 
-    from lab.locks import FileLock
-    from lab.runs import read_run
+    from lab.core.locks import FileLock
+    from lab.core.runs import read_run
 
     going = tmp_path / "going"
     shutil.copytree(root / "bench" / "borg-killed", going)

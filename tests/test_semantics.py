@@ -17,7 +17,7 @@ from estimation.semantics import (
     closeout_zone,
     deployable_check,
 )
-from lab.geometry import Pose3, Rot3
+from lab.core.geometry import Pose3, Rot3
 
 SPACING = 0.5
 

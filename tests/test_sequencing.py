@@ -16,7 +16,7 @@ from estimation.sequencing import (
 )
 from estimation.truss_covariance import plan_jacobian
 from estimation.truss_geometry import Plan, Step
-from lab.structures.trusses import build_truss
+from lab.core.structures.trusses import build_truss
 
 
 @pytest.fixture(scope="module")

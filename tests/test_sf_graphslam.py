@@ -13,8 +13,8 @@ import pytest
 
 from estimation.fiducials import Detection
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
-from lab.geometry import Pose3, Rot3, look_at, pose_error
-from lab.structures.borg import build_borg
+from lab.core.geometry import Pose3, Rot3, look_at, pose_error
+from lab.core.structures.borg import build_borg
 
 MEAS_SIGMA_M = 0.002
 MEAS_SIGMA_RAD = math.radians(0.2)

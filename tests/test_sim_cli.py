@@ -14,7 +14,7 @@ import urllib.request
 from pathlib import Path
 
 from lab.cli import main
-from lab.config import default_rig_path
+from lab.core.config import default_rig_path
 
 DEFAULT_PORTS = (27101, 27102, 27103, 27104, 27111, 27112, 27113)
 

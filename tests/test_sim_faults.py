@@ -13,10 +13,10 @@ import drivers
 from drivers.camera import Camera
 from drivers.errors import DeviceFault, DeviceTimeout, Disconnected, LengthControlError, ProtocolError
 from drivers.testing import fast_sim_rig
-from lab.comms import MemoryComms
-from lab.errors import UserError
-from lab.scenario import DeviceFault as ScenarioFault
-from lab.scenario import Scenario
+from lab.core.comms import MemoryComms
+from lab.core.errors import UserError
+from lab.core.scenario import DeviceFault as ScenarioFault
+from lab.core.scenario import Scenario
 from sim_devices.bench import start_sim_bench
 
 RIG = fast_sim_rig()     # reply timeout 0.25 s, motion margin 0.2 s, 2 retries

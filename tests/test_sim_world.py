@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lab.config import load_rig, parse_rig
-from lab.errors import UserError
-from lab.geometry import pose_error
-from lab.rig_error import RigError
-from lab.scenario import BorgFault, Scenario, load_scenario
+from lab.core.config import load_rig, parse_rig
+from lab.core.errors import UserError
+from lab.core.geometry import pose_error
+from lab.core.rig_error import RigError
+from lab.core.scenario import BorgFault, Scenario, load_scenario
 from sim_devices.world import SimWorld
 
 RIG = load_rig()
@@ -120,7 +120,7 @@ def test_seeding_is_reproducible_and_streams_are_independent():
 def test_a_hardware_rig_cannot_be_simulated():
     import tomllib
 
-    from lab.config import default_rig_path
+    from lab.core.config import default_rig_path
 
     data = tomllib.loads(default_rig_path().read_text())
     data.pop("sim")

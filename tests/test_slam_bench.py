@@ -1,4 +1,4 @@
-"""The SLAM studies' ingredients: the paper's noise model as simulated (procedures/studies/slam_sim.py),
+"""The SLAM studies' ingredients: the paper's noise model as simulated (lab/studies/slam_sim.py),
 SF-GraphSLAM's gate under that noise (the shared camera error cancels in a related pair; good
 pairs are tied, a partial deployment is caught), and `lab bench slam` on a tiny instance (its JSON
 shape, its outputs, its bad-input errors).  The figures themselves are measured by the bench."""
@@ -14,11 +14,11 @@ import sys
 import numpy as np
 import pytest
 
-from procedures.studies import bench_slam
-from procedures.studies import slam_sim as ss
+from lab.studies import bench_slam
+from lab.studies import slam_sim as ss
 from estimation.sf_graphslam import SfGraphSlam
-from lab.errors import UserError
-from lab.structures.borg import build_borg
+from lab.core.errors import UserError
+from lab.core.structures.borg import build_borg
 
 REQUIRED = {"trans_rmse_m", "rot_rmse_rad", "offset_trans_rmse_m", "offset_rot_rmse_rad", "solve_s"}
 
@@ -65,7 +65,7 @@ def test_the_full_survey_sees_every_tag_at_least_twice(model):
 def test_a_rendered_survey_is_measured_by_the_real_detector(model):
     """slam_sim.measure_rendered: the views rendered from the true camera, read by TagDetector (with
     the reported camera predicting the tags), and SF-GraphSLAM on what it found."""
-    from lab.geometry import pose_error
+    from lab.core.geometry import pose_error
 
     rng = np.random.default_rng(5)
     tags = [0, 1, 2, 9]
@@ -193,8 +193,8 @@ def test_a_tag_behind_a_nearer_one_is_hidden_and_one_beside_it_is_not():
 def test_the_scaling_study_sees_a_structure_as_the_rendered_camera_does():
     """Occlusion on: a view of the 4x4x4 reads fewer tags than a camera that sees through it, and
     the study's rows carry what the growth is fitted on."""
-    from procedures.studies import bench_scaling
-    from procedures.studies.bench_precision import PrecisionSetup, _sight
+    from lab.studies import bench_scaling
+    from lab.studies.bench_precision import PrecisionSetup, _sight
 
     model = build_borg(4)
     truth = ss.true_tag_poses(model, ss.StructureFaults(), list(model.tags))

@@ -7,8 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from lab.geometry import from_xyzquat, pose_error
-from lab.structures.borg import build_borg, to_json
+from lab.core.geometry import from_xyzquat, pose_error
+from lab.core.structures.borg import build_borg, to_json
 
 # Table 1 as printed in the paper (tag: opti name, related tags), typed in independently of the
 # module under test so that a transcription slip in either shows up here.

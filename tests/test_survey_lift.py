@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from drivers.stewart_kinematics import StewartKinematics
-from lab.config import load_rig
-from lab.structures.borg import build_borg
+from lab.core.config import load_rig
+from lab.core.structures.borg import build_borg
 from procedures.survey import CameraModel, SurveyPlanner, View
 
 RIG = load_rig()

@@ -10,11 +10,11 @@ import math
 import numpy as np
 import pytest
 
-from procedures.studies import slam_sim as ss
-from procedures.studies.bench_slam import run_ours
+from lab.studies import slam_sim as ss
+from lab.studies.bench_slam import run_ours
 from estimation.tag_elimination import eliminate_tags
-from lab.geometry import Pose3, Rot3
-from lab.structures.borg import build_borg
+from lab.core.geometry import Pose3, Rot3
+from lab.core.structures.borg import build_borg
 
 
 @pytest.fixture(scope="module")

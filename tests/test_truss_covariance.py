@@ -12,7 +12,7 @@ from estimation.truss_covariance import (
     trace,
 )
 from estimation.truss_geometry import Plan, orient_base
-from lab.structures.trusses import build_truss
+from lab.core.structures.trusses import build_truss
 
 
 def _helix_plan(n):

@@ -11,7 +11,7 @@ from estimation.truss_fusion import TrussCameraMLE
 from estimation.truss_geometry import Plan, orient_base
 from estimation.truss_mle import TrussMLE
 from estimation.truss_simulation import monte_carlo, simulate_assembly
-from lab.structures.trusses import build_truss
+from lab.core.structures.trusses import build_truss
 
 SL, SM = np.sqrt(3.57e-7), np.sqrt(6.25e-8)
 
@@ -127,7 +127,7 @@ def test_lab_plan_truss_json(capsys):
 
 
 def test_bench_mle_small_instance(tmp_path):
-    from procedures.studies import bench_mle
+    from lab.studies import bench_mle
 
     s = bench_mle.study_tetrahelix20(trials=6, seed=0)
     assert s["open_loop"]["analytic_trace_total_m2"] == pytest.approx(28.76, abs=0.01)

@@ -5,8 +5,8 @@ import itertools
 import numpy as np
 import pytest
 
-from lab.errors import UserError
-from lab.structures.trusses import base_height_ratio, build_truss, is_buildable, to_json
+from lab.core.errors import UserError
+from lab.core.structures.trusses import base_height_ratio, build_truss, is_buildable, to_json
 
 
 @pytest.mark.parametrize("name, edge", [("tetrahelix:20", 1.0), ("tetrahelix:7:0.5", 0.5)])

@@ -13,8 +13,8 @@ import pytest
 from estimation.semantics import deployable_check
 from estimation.tag_elimination import eliminate_tags
 from estimation.verification import Tolerance, Tolerances, verify_module
-from lab.geometry import Pose3, Rot3
-from lab.structures.borg import build_borg
+from lab.core.geometry import Pose3, Rot3
+from lab.core.structures.borg import build_borg
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +119,7 @@ def test_out_of_tolerance_is_flagged_and_noise_alone_is_not(model):
 
 def test_module_sigma_carries_the_tag_tilt_through_the_lever_arm():
     from estimation.precision import module_sigma
-    from lab.geometry import Pose3, Rot3
+    from lab.core.geometry import Pose3, Rot3
 
     # a tag known to 0.1 mm in position and 0.1 deg in tilt, 0.15 m from the module's anchor
     cov = np.diag([np.radians(0.1) ** 2] * 3 + [1e-4 ** 2] * 3)

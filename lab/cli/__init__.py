@@ -15,7 +15,7 @@ import importlib
 import re
 import sys
 
-from lab.errors import UserError
+from lab.core.errors import UserError
 
 DESCRIPTION = ("lab: hardware-in-the-loop control of the robotic-assembly lab: BORG truss assembly measured "
                "with SF-GraphSLAM, IPJR truss assembly, camera and rig calibration, on real or simulated devices; "

@@ -106,8 +106,8 @@ def _camera(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from drivers.camera import Intrinsics, save_calibration
-    from lab.config import load_rig
-    from lab.errors import UserError
+    from lab.core.config import load_rig
+    from lab.core.errors import UserError
     from procedures import calibrate as cal
     from procedures.calibrate import CalibrationSession, capture_live, parse_board, read_frames
 
@@ -119,7 +119,7 @@ def _camera(args: argparse.Namespace) -> int:
         raise UserError(f"--out {out} is a directory; give a file name such as {out / DEFAULT_OUT}")
     if out.exists() and not args.force:
         raise UserError(f"--out {out} already exists; choose another file or add --force to replace it")
-    from lab.paths import check_output_dir, check_output_file
+    from lab.core.paths import check_output_dir, check_output_file
 
     # written at the end, after every view: checked before the first
     check_output_file(out, "--out")
@@ -168,7 +168,7 @@ def _camera(args: argparse.Namespace) -> int:
                     say(f"{label}: not used: {d.reason}")
         else:
             from drivers.camera import Camera
-            from lab.comms import null_sink
+            from lab.core.comms import null_sink
             from procedures.runner import Operator
 
             # The old calibration is not loaded: it may be for another resolution, the reason to recalibrate.
@@ -187,7 +187,7 @@ def _camera(args: argparse.Namespace) -> int:
         return result
 
     if args.record:
-        from lab.recorder import RunRecorder
+        from lab.core.recorder import RunRecorder
 
         with RunRecorder(args.record, "calibrate_camera", params, rig=rig.to_dict(), argv=sys.argv) as rec:
             result = run(rec)
@@ -213,8 +213,8 @@ def _sim_frames(rig: Any, board: Any, n: int, seed: int | None, save_dir: str | 
     import numpy as np
 
     from drivers.camera import Intrinsics
-    from lab.errors import UserError
-    from lab.scenario import Scenario, load_scenario
+    from lab.core.errors import UserError
+    from lab.core.scenario import Scenario, load_scenario
     from sim_devices.charuco_render import imaged_calibration_session
     from sim_devices.world import camera_gain_map, true_camera
 
@@ -264,8 +264,8 @@ def _rig_hint(rig: Any, out: Path) -> str:
 def _rig(args: argparse.Namespace) -> int:
     import time
 
-    from lab.errors import UserError
-    from lab.recorder import RunRecorder
+    from lab.core.errors import UserError
+    from lab.core.recorder import RunRecorder
     from procedures import runner
     from procedures.calibrate_rig import RigCalibrationProcedure
     from procedures.setup import open_bench
@@ -280,11 +280,11 @@ def _rig(args: argparse.Namespace) -> int:
         raise UserError(f"--speedup {args.speedup}: must be a positive factor")
     if not 5.0 <= args.angle_step_deg <= 180.0:
         raise UserError(f"--angle-step-deg {args.angle_step_deg}: must be 5..180 degrees")
-    from lab.runs import runs_root
+    from lab.core.runs import runs_root
 
     run_dir = Path(args.run_dir) if args.run_dir else runs_root()[0] / f"calibrate-rig-{time.strftime('%Y%m%d-%H%M%S')}"
     if not args.dry_run:
-        from lab.paths import check_output_dir, check_output_file
+        from lab.core.paths import check_output_dir, check_output_file
 
         # both are written after the survey: find out now, before anything moves, that they can be
         check_output_file(out, "--out")
@@ -401,7 +401,7 @@ def _board(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
-    from lab.errors import UserError
+    from lab.core.errors import UserError
     from procedures.calibrate import DEFAULT_BOARD, parse_board
 
     board = parse_board(args.board or DEFAULT_BOARD)
@@ -434,7 +434,7 @@ def _board(args: argparse.Namespace) -> int:
         pad_w, pad_h = round(sw * px_per_mm) - img.shape[1], round(sh * px_per_mm) - img.shape[0]
         img = cv2.copyMakeBorder(img, pad_h // 2, pad_h - pad_h // 2, pad_w // 2, pad_w - pad_w // 2,
                                  cv2.BORDER_CONSTANT, value=255)
-    from lab.paths import check_output_file
+    from lab.core.paths import check_output_file
 
     check_output_file(out, "--out")
     import matplotlib

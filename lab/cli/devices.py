@@ -12,7 +12,7 @@ import sys
 import threading
 import urllib.parse
 
-from lab.errors import UserError
+from lab.core.errors import UserError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -58,13 +58,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 # ------------------------------------------------------------------------------------------------
 def _load(rig_path: str | None):
-    from lab.config import load_rig
+    from lab.core.config import load_rig
 
     return load_rig(rig_path)
 
 
 def _sim(args: argparse.Namespace) -> int:
-    from lab.scenario import load_scenario
+    from lab.core.scenario import load_scenario
     from procedures.setup import check_speedup
     from sim_devices.bench import ephemeral_port_range, ports_in_ephemeral_range, start_sim_bench
 

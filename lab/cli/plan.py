@@ -30,8 +30,8 @@ def _plan_truss(args: argparse.Namespace) -> int:
 
     from estimation.sequencing import Planner, all_central_triangles, random_sequence
     from estimation.truss_covariance import node_traces
-    from lab.errors import UserError
-    from lab.structures.trusses import build_truss
+    from lab.core.errors import UserError
+    from lab.core.structures.trusses import build_truss
 
     if not (args.sigma_l > 0 and math.isfinite(args.sigma_l)):
         raise UserError(f"--sigma-l must be a positive length in metres, got {args.sigma_l}")

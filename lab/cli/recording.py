@@ -28,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _recover(args: argparse.Namespace) -> int:
-    from lab.recorder.recover import recover
+    from lab.core.recorder.recover import recover
 
     rep = recover(args.file, args.output, overwrite=args.force)
     if rep.intact:
@@ -55,18 +55,18 @@ def _recover(args: argparse.Namespace) -> int:
 def _review(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from lab.errors import UserError
-    from lab.review import review
-    from lab.viewer import choose_mode, wait_for_interrupt
+    from lab.core.errors import UserError
+    from lab.core.review import review
+    from lab.core.viewer import choose_mode, wait_for_interrupt
 
     if not Path(args.file).is_file():
         raise UserError(f"{args.file}: no such file")
     if args.save:
-        from lab.paths import check_output_file
+        from lab.core.paths import check_output_file
 
         check_output_file(args.save, "--save")      # before the run is read, not after
     if args.connect:
-        from lab.viewer import check_connect_url
+        from lab.core.viewer import check_connect_url
 
         check_connect_url(args.connect)
     rep = review(args.file, args.save, mode=choose_mode(args.save, args.connect, args.web), connect=args.connect)

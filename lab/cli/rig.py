@@ -37,8 +37,8 @@ def check_rig(path: str) -> RigReport:
     """Everything that can be checked without a device; a problem raises UserError (one line)."""
     from drivers.camera import load_calibration
     from drivers.stewart_kinematics import StewartKinematics
-    from lab.config import load_rig
-    from lab.errors import UserError
+    from lab.core.config import load_rig
+    from lab.core.errors import UserError
 
     rig = load_rig(path)
     rep = RigReport(rig.name, rig.source, rig.sim is not None)
@@ -78,9 +78,9 @@ def check_rig(path: str) -> RigReport:
                                     f"{ipjr.volts_retracted:.3f}..{ipjr.volts_extended:.3f} V"})
     borg_rig = rig.turntable is not None and rig.stewart is not None and rig.camera is not None
     if rig.calibration.file is not None:
-        from lab.rig_calibration import load_rig_calibration
-        from lab.rig_calibration_check import check_for_rig
-        from lab.structures.borg import build_borg
+        from lab.core.rig_calibration import load_rig_calibration
+        from lab.core.rig_calibration_check import check_for_rig
+        from lab.core.structures.borg import build_borg
 
         cal = load_rig_calibration(rig.calibration.file)      # its covariances' meaning too
         if borg_rig:

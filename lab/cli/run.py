@@ -98,10 +98,10 @@ def _speedup(text: str) -> float:
 
 def _out_dir(args: argparse.Namespace, procedure: str) -> Path:
     """--out, else a new directory under the runs root ($LAB_RUNS, the user config's `runs`, else
-    ./runs; lab/runs.py), named for the procedure and the time."""
+    ./runs; lab/core/runs.py), named for the procedure and the time."""
     if args.out:
         return Path(args.out)
-    from lab.runs import runs_root
+    from lab.core.runs import runs_root
 
     root, _ = runs_root()
     return root / f"{procedure}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -125,10 +125,10 @@ def _build(procedure: str, params: dict[str, Any]):
 
     n = params.get("n") if procedure == "borg" else None
     if n is not None:
-        from lab.structures.borg import MAX_N
+        from lab.core.structures.borg import MAX_N
 
         if not 2 <= n <= MAX_N:       # before the simulated bench is built for it
-            from lab.errors import UserError
+            from lab.core.errors import UserError
 
             raise UserError(f"--n {n}: the BORG size must be an integer from 2 to {MAX_N}")
     bench = open_bench(params.get("rig"), params.get("scenario"), speedup=params.get("speedup"), borg_n=n)
@@ -160,15 +160,15 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
     refuses before any device moves and before any file of the run is touched."""
     import signal
 
-    from lab.locks import set_holder
-    from lab.recorder import RunRecorder
+    from lab.core.locks import set_holder
+    from lab.core.recorder import RunRecorder
     from procedures.console import Console, ConsoleRecorder
     from procedures import resume as rs
     from procedures import runner
 
     dry = bool(params.get("dry_run"))
     if params.get("view") not in (None, "auto") and not dry:
-        from lab.viewer import check_viewer_answers
+        from lab.core.viewer import check_viewer_answers
 
         check_viewer_answers(params["view"])      # a URL nothing answers at: one line, before anything
     run_dir = resume_dir or _out_dir(argparse.Namespace(**params), procedure)
@@ -213,7 +213,7 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
                               structure=structure)
             bench.relay.target = console.comms_tap(rec.comms_sink)   # retries and reconnects printed too
             if params.get("view"):
-                from lab.live import LiveView
+                from lab.core.live import LiveView
 
                 view = LiveView(params["view"], rec.run_id, ["world/camera/image"] if procedure == "borg" else [])
                 rec.add_listener(view.feed)
@@ -263,7 +263,7 @@ def _close_live(view: Any, run_dir: Path) -> None:
     run without a terminal (CI, a script) must end, so there it stops with the run."""
     import signal
 
-    from lab.viewer import wait_for_interrupt
+    from lab.core.viewer import wait_for_interrupt
 
     rep = view.close(run_dir / "run.mcap")
     if rep.problem:

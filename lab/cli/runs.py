@@ -1,4 +1,5 @@
-"""`lab runs [--root DIR] [--json]` and `lab runs show RUN [--timings]`: the catalogue of past runs (lab/runs.py)."""
+"""`lab runs [--root DIR] [--json]` and `lab runs show RUN [--timings]`: the catalogue of past runs
+(lab/core/runs.py)."""
 
 from __future__ import annotations
 
@@ -32,13 +33,13 @@ def _common(p: argparse.ArgumentParser) -> None:
 def _root(args: argparse.Namespace):
     from pathlib import Path
 
-    from lab.runs import runs_root
+    from lab.core.runs import runs_root
 
     return Path(args.root) if getattr(args, "root", None) else runs_root()[0]
 
 
 def _list(args: argparse.Namespace) -> int:
-    from lab.runs import format_list, list_runs
+    from lab.core.runs import format_list, list_runs
 
     root = _root(args)
     entries = list_runs(root)
@@ -54,13 +55,13 @@ def _list(args: argparse.Namespace) -> int:
 
 
 def _show(args: argparse.Namespace) -> int:
-    from lab.errors import UserError
-    from lab.runs import format_duration, read_run, resolve_run
+    from lab.core.errors import UserError
+    from lab.core.runs import format_duration, read_run, resolve_run
 
     root = _root(args)
     run_dir = resolve_run(args.run, root)
     entry = read_run(run_dir, root)
-    from lab.runs import read_summary_file
+    from lab.core.runs import read_summary_file
 
     sf = read_summary_file(run_dir)
     summary = sf.summary
@@ -72,7 +73,7 @@ def _show(args: argparse.Namespace) -> int:
     if getattr(args, "timings", False):
         from dataclasses import asdict
 
-        from lab.runs import RUN_FILE, metric_stats, run_metrics
+        from lab.core.runs import RUN_FILE, metric_stats, run_metrics
 
         mcap = run_dir / RUN_FILE
         timings = metric_stats(run_metrics(mcap)) if mcap.exists() else []
@@ -115,7 +116,7 @@ def _show(args: argparse.Namespace) -> int:
     else:
         print(json.dumps({k: v for k, v in summary.items() if k not in ("result", "reason")}, indent=1)[:4000])
     if timings is not None:
-        from lab.runs import format_metrics
+        from lab.core.runs import format_metrics
 
         print()
         print(format_metrics(timings) if timings else "no metrics in run.mcap")

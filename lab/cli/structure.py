@@ -25,8 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _borg(args: argparse.Namespace) -> int:
-    from lab.errors import UserError
-    from lab.structures.borg import build_borg, to_json
+    from lab.core.errors import UserError
+    from lab.core.structures.borg import build_borg, to_json
 
     try:
         model = build_borg(args.n, args.spacing)
@@ -35,7 +35,7 @@ def _borg(args: argparse.Namespace) -> int:
     if args.plot:
         from pathlib import Path
 
-        from lab.structures.borg_plot import plot_borg
+        from lab.core.structures.borg_plot import plot_borg
 
         target = Path(args.plot)
         if not target.parent.is_dir():
@@ -58,7 +58,7 @@ def _borg(args: argparse.Namespace) -> int:
 
 
 def _truss(args: argparse.Namespace) -> int:
-    from lab.structures.trusses import build_truss, to_json
+    from lab.core.structures.trusses import build_truss, to_json
 
     model = build_truss(args.name)
     if args.json:

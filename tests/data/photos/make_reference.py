@@ -26,7 +26,7 @@ def _same(a: tuple[int, np.ndarray], b: tuple[int, np.ndarray]) -> bool:
 
 
 def main() -> int:
-    from procedures.studies import apriltag3
+    from lab.studies import apriltag3
     from estimation.fiducials import DetectorConfig, TagDetector
 
     ours = TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)}, DetectorConfig(quiet_zone=False))

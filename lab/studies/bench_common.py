@@ -1,0 +1,82 @@
+"""Small pieces the benchmark modules share."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+from lab.core.executor import Trial, open_study, without_executor_args
+from lab.core.executor.journal import finite_values
+
+
+def save_figure(fig, out_dir: str, name: str, dpi: int = 110) -> str:
+    """Lay out, write and close a matplotlib figure; returns the file's path."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path = os.path.join(out_dir, name)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
+def report_study(path: str, name: str, aggregate: Callable[[list[dict]], list[dict]],
+                 to_markdown: Callable[[dict], str]) -> int:
+    """`lab bench NAME --report FILE`: the tables of a finished or interrupted study's NAME.json."""
+    from lab.core.errors import UserError
+
+    try:
+        res = json.loads(Path(path).read_text())
+        res["rows"] = aggregate(res["trials"])
+        text = to_markdown(res)
+    except (OSError, ValueError, KeyError) as exc:
+        raise UserError(f"--report {path}: not a study's {name}.json ({exc})") from None
+    print(text)
+    return 0
+
+
+def run_trial_study(args: argparse.Namespace, name: str, runs: Sequence[Trial], trial: Callable[[Trial], dict],
+                    params: dict[str, Any], aggregate: Callable[[list[dict]], list[dict]],
+                    to_markdown: Callable[[dict], str], progress: Callable[[dict], str]) -> int:
+    """Run a study's trials through `lab.core.executor` (workers or Dask; journaled, so the same command
+    resumes), writing --out/NAME.json after every trial (an interrupted study's file has every
+    finished one) and printing its tables (or, with --json, its figures) at the end.  `params`
+    name the study (the journal's header, with the speed-up) and go into NAME.json; `progress`
+    is the line said for a finished trial."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    finished: dict[str, dict[str, Any]] = {}
+    argv = without_executor_args([a for a in sys.argv[3:] if a != "--json"])
+    command = (f"lab bench {name} " + " ".join(argv)).strip()
+    order = {t.key: i for i, t in enumerate(runs)}
+
+    def result(study_executor: str) -> dict[str, Any]:
+        trials = [finished[k] for k in sorted(finished, key=order.__getitem__)]
+        return {"command": command, "runs": len(trials), "wall_s": time.perf_counter() - t0, **params,
+                "rows": aggregate(trials), "trials": trials, "executor": study_executor}
+
+    # a restored trial is an input: its numbers finite (these studies write null for "none"), so
+    # a NaN typed into the journal is refused, not drawn
+    with open_study(args, out, {"bench": name, **params, "speedup": args.speedup}, f"lab bench {name}",
+                    validate=finite_values) as study:
+        def done(t: Trial, r: dict[str, Any]) -> None:
+            finished[t.key] = r
+            (out / f"{name}.json").write_text(json.dumps(result(study.describe()), indent=1))
+            if not args.json:
+                study.say(progress(r))
+
+        study.map(trial, list(runs), on_result=done)
+        res = result(study.describe())
+        (out / f"{name}.json").write_text(json.dumps(res, indent=1))
+        study.finish()
+    if args.json:
+        print(json.dumps({k: v for k, v in res.items() if k != "trials"}, indent=1))
+    else:
+        print(to_markdown(res))
+    return 0
