@@ -27,7 +27,7 @@ Two things keep the covariances honest (measured on rendered surveys, docs/calib
   components of their prior groups), and the lens's radial distortion error and each turntable
   tag's print scale are variables, so what the camera file and the printer got wrong is estimated
   rather than read as a rig error.
-The calibration keeps the joint posterior (lab/rig_calibration.py): a run takes it as one prior.
+The calibration keeps the joint posterior (lab/core/rig_calibration.py): a run takes it as one prior.
 """
 
 from __future__ import annotations
@@ -226,7 +226,7 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
     tt = set(turntable_tags)
     tag_poses = {t: est.atPose3(T(t)) for t in sorted(seen & tt)}
     tag_covs = {t: marg.marginalCovariance(T(t)) for t in tag_poses}
-    # the run's prior is this joint covariance, not the marginals (lab/rig_calibration.py)
+    # the run's prior is this joint covariance, not the marginals (lab/core/rig_calibration.py)
     joint = marg.jointMarginalCovariance(gtsam.KeyVector([AXIS, BASE, MOUNT, INTRINSICS, DISTORTION,
                                                           *(T(t) for t in tag_poses)])).fullMatrix()
     residuals = _residuals(views, est, K_und, dist, tags)
