@@ -11,35 +11,9 @@ from pathlib import Path
 
 import pytest
 
+from lab.studies.bench_faults_inputs import CTRL_C_CHILD as CHILD
+
 ROOT = Path(__file__).resolve().parents[1]
-CHILD = r"""
-import hashlib, os, signal, sys, threading, time
-from procedures.pause import PauseControl
-from procedures.runner import SignalShield
-
-shield = SignalShield()
-shield.install()
-pause = PauseControl(shield, True, say=lambda text: None)
-pause.install()
-count = int(sys.argv[1])
-
-def kick():
-    time.sleep(0.2)
-    for k in range(count):
-        os.kill(os.getpid(), signal.SIGINT)
-        time.sleep(0.05)
-
-threading.Thread(target=kick).start()
-try:
-    hashlib.pbkdf2_hmac("sha256", b"x", b"y", 3_000_000)   # ~1 s in one C call: no handler runs inside
-    time.sleep(0.05)
-    print("pause" if pause.requested else "nothing", len(shield.signals))
-except KeyboardInterrupt:
-    print("abort", len(shield.signals))
-finally:
-    pause.restore()
-    shield.restore()
-"""
 
 
 def _child(count: int) -> list[str]:
