@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from lab.core.executor import Trial, add_executor_arguments
-from lab.studies.bench_common import report_study, run_trial_study
+from lab.studies.bench_common import report_study, run_trial_study, study_size
 
 # Faults among the first 9 modules, so --quick sees them all: a partial deployment and a 15 mm
 # offset must be flagged, a displaced tag rejected (its module unverified), a 2 mm offset passed.
@@ -247,12 +247,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.report:
         return report_study(args.report, "calibration", _aggregate, to_markdown)
-    seeds = args.seeds if args.seeds is not None else (2 if args.quick else 10)
-    modules = args.modules if args.modules is not None else (9 if args.quick else 27)
-    try:
-        scales = [float(x) for x in (args.scales or ("0,2" if args.quick else "0,1,2")).split(",")]
-    except ValueError:
-        raise UserError(f"--scales: expected numbers separated by commas, got {args.scales!r}") from None
+    seeds, modules, scales = study_size(args, quick_scales="0,2")
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     bad = [m for m in modes if m not in MODES]
     if bad or not modes:

@@ -25,6 +25,21 @@ def save_figure(fig, out_dir: str, name: str, dpi: int = 110) -> str:
     return path
 
 
+def study_size(args: argparse.Namespace, quick_scales: str) -> tuple[int, int, list[float]]:
+    """Seeds, modules per run and rig-error scales of a trial study (`lab bench trust`,
+    `lab bench calibration`): the flags, else 2 x 9 modules with `quick_scales` under --quick,
+    else 10 x 27 at 0, 1 and 2 times the default rig errors."""
+    from lab.core.errors import UserError
+
+    seeds = args.seeds if args.seeds is not None else (2 if args.quick else 10)
+    modules = args.modules if args.modules is not None else (9 if args.quick else 27)
+    try:
+        scales = [float(x) for x in (args.scales or (quick_scales if args.quick else "0,1,2")).split(",")]
+    except ValueError:
+        raise UserError(f"--scales: expected numbers separated by commas, got {args.scales!r}") from None
+    return seeds, modules, scales
+
+
 def report_study(path: str, name: str, aggregate: Callable[[list[dict]], list[dict]],
                  to_markdown: Callable[[dict], str]) -> int:
     """`lab bench NAME --report FILE`: the tables of a finished or interrupted study's NAME.json."""

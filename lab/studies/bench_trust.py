@@ -36,7 +36,7 @@ import numpy as np
 
 from lab.core.executor import Trial, add_executor_arguments
 from lab.core.imaging import IDEAL, scenario_tables
-from lab.studies.bench_common import report_study, run_trial_study
+from lab.studies.bench_common import report_study, run_trial_study, study_size
 
 # A scenario's [camera] and [tags] for each camera quality (omitted keys keep the rig's defaults).
 CAMERAS: dict[str, str] = {
@@ -231,12 +231,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.report:
         return report_study(args.report, "trust", aggregate, to_markdown)
-    seeds = args.seeds if args.seeds is not None else (2 if args.quick else 10)
-    modules = args.modules if args.modules is not None else (9 if args.quick else 27)
-    try:
-        scales = [float(x) for x in (args.scales or ("1" if args.quick else "0,1,2")).split(",")]
-    except ValueError:
-        raise UserError(f"--scales: expected numbers separated by commas, got {args.scales!r}") from None
+    seeds, modules, scales = study_size(args, quick_scales="1")
     cameras = [c.strip() for c in args.cameras.split(",") if c.strip()]
     if not cameras or any(c not in CAMERAS for c in cameras):
         raise UserError(f"--cameras: expected some of {', '.join(CAMERAS)}, got {args.cameras!r}")
