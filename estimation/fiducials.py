@@ -41,6 +41,7 @@ from typing import Callable, Mapping, Sequence
 import cv2
 import numpy as np
 
+from estimation.quad_bias import blur_bias
 from estimation.tag_quads import code_bits, fit_quads, identify, read_bits, ring_deviation
 from lab.core.geometry import Pose3, Rot3
 
@@ -86,6 +87,10 @@ class DetectorConfig:
     # people's tags (docs/fiducials.md, "Occlusion").
     quiet_zone: bool = True
     max_ring_deviation: float = 0.35
+    # Take the edge fit's own bias off the corners of tags whose cells are small against the blur
+    # (`estimation.quad_bias`: under a 1.6 px lens a 4 px cell's square reads 0.05-0.5 px small).
+    # Needs the quiet zone (the model draws it).
+    correct_blur_bias: bool = True
 
 
 @lru_cache(maxsize=64)
@@ -114,6 +119,16 @@ def refine_corners_by_edges(grey: np.ndarray, corners: np.ndarray, samples: int 
     if not fit.edges_fitted.all() or np.max(np.linalg.norm(fit.corners[0] - corners, axis=1)) > 2.5:
         return None
     return fit.corners[0]
+
+
+def _rolled_like(quads: np.ndarray, rolled: np.ndarray) -> np.ndarray:
+    """Each quad's corners cycled to the order of its refined, rolled counterpart (the one of the
+    four cyclic orders closest to it)."""
+    if len(quads) == 0:
+        return quads
+    options = np.stack([np.roll(quads, -r, axis=1) for r in range(4)])          # (4, N, 4, 2)
+    best = np.argmin(np.linalg.norm(options - rolled[None], axis=3).sum(axis=2), axis=0)
+    return options[best, np.arange(len(quads))]
 
 
 def _overlaps(quad: np.ndarray, others: np.ndarray) -> bool:
@@ -188,16 +203,22 @@ class TagDetector:
         keep = ok[:n] & (self._bit_errors(grey, fit.corners[:n], quads, ids) <= cfg.max_bit_errors)
         found_ids = [t for t, good in zip(ids, keep) if good]
         found = [fit.corners[:n][keep]]
+        started = [quads[keep]]
         if ok[n:].any():
             tid, rolled, errors = identify(grey, fit.corners[n:][ok[n:]], self._codes, self._allowed)
             good = errors <= cfg.max_bit_errors
             found_ids += [int(t) for t in tid[good]]
             found.append(rolled[good])
+            started.append(_rolled_like(rej[ok[n:]][good], rolled[good]))
         corners = np.concatenate(found).reshape(-1, 4, 2)
+        initial = np.concatenate(started).reshape(-1, 4, 2)
         if cfg.quiet_zone and len(corners):
             clear = ring_deviation(grey, corners) <= cfg.max_ring_deviation
             found_ids = [t for t, c in zip(found_ids, clear) if c]
-            corners = corners[clear]
+            corners, initial = corners[clear], initial[clear]
+        if cfg.correct_blur_bias and cfg.quiet_zone and len(corners):     # the model draws the quiet zone
+            bias, _ = blur_bias(grey, corners, initial, self._codes[np.asarray(found_ids)], cfg.quiet_zone)
+            corners = corners - bias
         return found_ids, corners
 
     def refine(self, grey: np.ndarray, ids: Sequence[int], quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
