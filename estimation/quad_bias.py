@@ -221,6 +221,6 @@ def _bias_at(grey: np.ndarray, fitted: np.ndarray, corners: np.ndarray, initial:
     fit = fit_quads(model, np.asarray(initial, dtype=np.float64).reshape(-1, 4, 2)[done], None, quiet_zone=quiet_zone)
     b = fit.corners - q[done]
     # bias = what the fit reads on a model drawn at `corners`, less them
-    ok = np.all(np.isfinite(b), axis=(1, 2))
+    ok = np.all(np.isfinite(b), axis=(1, 2)) & fit.edges_fitted.all(axis=1)
     bias[done[ok]] = b[ok]
     return bias, sigma

@@ -64,6 +64,8 @@ COARSE_SEARCH_CELLS = 1.5  # ... or 1.5 cells: the inner pattern's and quiet zon
 COARSE_BELOW_CELL_PX = 4.5  # tags with smaller cells start with a coarse pass
 SHARPEN = 0.25            # Laplacian sharpening of the cell samples before reading bits (AprilTag's default)
 CONVERGED_PX = 0.1        # a fine pass that moved no corner more than this ends a quad's refinement
+MAX_DRIFT_PX = 4.0        # a quad whose corner runs further than this (or MAX_DRIFT_SIDES of its side)
+MAX_DRIFT_SIDES = 0.25    # from where it started is lost, not refined (the detector's check is 3.5 px / 0.2)
 EDGE_LEVELS_MIN_CELL_PX = 4.0   # smaller cells: an edge's dark/bright levels are its tag's
 # Occlusion (docs/fiducials.md), looked for on edges whose cells are OCCLUSION_MIN_CELL_PX or more:
 # a row is left out as occluded when its window's end samples differ from its edge's medians by
@@ -451,6 +453,7 @@ def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.
     side = np.linalg.norm(np.roll(q, -1, axis=1) - q, axis=2).min(axis=1) if N else np.zeros(0)
     coarse_first = side / CELLS < COARSE_BELOW_CELL_PX
     active = np.ones(N, bool)
+    lost = np.zeros(N, bool)
 
     def step(idx: np.ndarray, coarse: bool, check: np.ndarray | None = None) -> np.ndarray:
         """One pass over the quads `idx`; how far each one's corners moved."""
@@ -466,7 +469,14 @@ def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.
         s = np.full(fitted.shape, np.nan)
         s[all_fit] = _corner_sigma(p[all_fit], d[all_fit], ideal[all_fit], stats[all_fit])
         sigma[idx] = s
-        moved = np.max(np.linalg.norm(nxt - cur[idx], axis=2), axis=1)
+        # a quad whose lines run away from where it started (a blurred, noisy or hidden tag whose
+        # edges lose their rows) would grow with every pass, and with it the rows read along its
+        # edges, to gigabytes: it keeps its last quad and is reported not fitted
+        away = np.max(np.linalg.norm(nxt - q[idx], axis=2), axis=1) > np.maximum(MAX_DRIFT_PX, MAX_DRIFT_SIDES * side[idx])
+        nxt[away] = cur[idx][away]
+        fitted_any[idx[away]] = False
+        lost[idx[away]] = True
+        moved = np.where(away, 0.0, np.max(np.linalg.norm(nxt - cur[idx], axis=2), axis=1))
         cur[idx] = nxt
         return moved
 
@@ -483,8 +493,9 @@ def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.
         check = checked[idx].copy()
         moved = step(idx, False, check)
         checked[idx] = True
+        active &= ~lost
         active[idx[(moved < CONVERGED_PX) & check]] = False   # converged: the fine pass contracts the error 10-1000x
-    fitted = fitted_any
+    fitted = fitted_any & ~lost[:, None]
     return QuadFit(cur, fitted, rms, sigma, occluded)
 
 

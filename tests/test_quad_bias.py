@@ -83,3 +83,26 @@ def test_the_correction_is_refused_where_the_model_does_not_fit():
     assert needs_correction(quad, np.array([1.6]))[0]
     bias, sigma = blur_bias(grey, quad, quad, pattern)
     assert np.all(bias == 0.0) and np.isnan(sigma[0])
+
+
+def test_a_quad_that_runs_away_is_lost_not_refined(monkeypatch):
+    """fit_quads' drift guard: a quad whose corners would move further than MAX_DRIFT_PX (or
+    MAX_DRIFT_SIDES of its side) from where it started keeps a quad within that reach and is
+    reported not fitted.  Without it a poor-camera run's quad grew pass after pass until reading its
+    edges' rows asked for 19.7 GiB.  Here the guard is tightened so that an honest walk of 5.5 px
+    to a square's true edges trips it."""
+    import cv2
+
+    from estimation import tag_quads
+
+    g = np.full((200, 200), 220, np.float32)
+    g[50:150, 50:150] = 25
+    g = cv2.GaussianBlur(g, (0, 0), 1.0)
+    q = np.array([[[53.5, 53.5], [145.5, 53.5], [145.5, 145.5], [53.5, 145.5]]])
+    free = tag_quads.fit_quads(g, q)
+    assert free.edges_fitted.all() and np.linalg.norm(free.corners - q, axis=2).max() > 5.0
+    monkeypatch.setattr(tag_quads, "MAX_DRIFT_PX", 2.0)
+    monkeypatch.setattr(tag_quads, "MAX_DRIFT_SIDES", 0.0)
+    held = tag_quads.fit_quads(g, q)
+    assert not held.edges_fitted.any()
+    assert np.linalg.norm(held.corners - q, axis=2).max() <= 2.0
