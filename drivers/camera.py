@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.driver import Driver
 from drivers.errors import DeviceTimeout, Disconnected, ProtocolError, RigMismatch
 from drivers.transport import HttpTransport
 from lab.core.comms import CommsRecord, CommsSink, null_sink
@@ -209,8 +210,9 @@ class _Capture:
         self.cap.release()
 
 
-class Camera:
+class Camera(Driver):
     kind = "camera"
+    moves = False
 
     def __init__(self, config: CameraConfig, sink: CommsSink = null_sink) -> None:
         self.config = config
@@ -263,8 +265,14 @@ class Camera:
                                          f"{self.intrinsics.height_px} px")
         return Frame(img, t if t is not None else time.time(), seq if seq is not None else self._seq, self.name)
 
-    def stop(self) -> None:
-        """Cameras do not move; here for the uniform `stop_all`."""
+    def check(self) -> str:
+        ident = self.identify()
+        t0 = time.monotonic()
+        frame = self.grab()
+        ms = (time.monotonic() - t0) * 1000
+        cal = (f"calibration {self.config.calibration.name} ({self.intrinsics.hfov_deg:.1f} deg HFOV)"
+               if self.intrinsics else "NO calibration file (set [camera] calibration)")
+        return f"{ident}; frame {frame.image.shape[1]}x{frame.image.shape[0]} in {ms:.0f} ms; {cal}"
 
     def close(self) -> None:
         if self._source is not None:

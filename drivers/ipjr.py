@@ -24,6 +24,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from drivers.driver import Actuator, http_transport, identify_line, line_transport
 from drivers.errors import Disconnected, LengthControlError, OutOfRange, ProtocolError
 from drivers.motion import MotionPlan, Poll, Progress, link_drops, sent_motion, stop_quietly, wait_until_idle
 from drivers.transport import HttpTransport, LineTransport, Transport
@@ -69,10 +70,7 @@ class _SerialWire:
         self.name, self.link = name, link
 
     def identify(self) -> str:
-        ident = self.link.request("ID?")
-        if not ident.startswith("IPJR"):
-            raise ProtocolError(self.name, f"ID? says {ident!r}: this is not an IPJR (check the rig URL)")
-        return ident
+        return identify_line(self.name, self.link, "IPJR", "an IPJR")
 
     def limits(self) -> IpjrHardware:
         req = "LIMITS?"
@@ -171,40 +169,35 @@ class _HttpWire:
         return self._get("/status", idempotent=True, keys=("state", "moving", "volts", "fault"))
 
 
-class Ipjr:
+class Ipjr(Actuator[IpjrHardware]):
     kind = "ipjr"
+    config: IpjrConfig
 
     def __init__(self, config: IpjrConfig, wire: _Wire) -> None:
-        self.config = config
-        self.name = config.name
+        super().__init__(config, wire.link)
         self.wire = wire
-        self.link = wire.link
-        self._hw: IpjrHardware | None = None
         self.attach_offset_m: float | None = None
-        self.moved = False      # a motion command has been sent by this driver (what a clean-up may stop)
 
     @classmethod
     def open(cls, config: IpjrConfig, sink: CommsSink = null_sink) -> Ipjr:
-        link = config.link
-        if link.url.startswith("http://"):
-            return cls(config, _HttpWire(config.name, HttpTransport(config.name, link.url, sink,
-                                                                    reply_timeout_s=link.reply_timeout_s,
-                                                                    retries=link.retries)))
-        return cls(config, _SerialWire(config.name, LineTransport(config.name, link.url, sink,
-                                                                  reply_timeout_s=link.reply_timeout_s,
-                                                                  retries=link.retries)))
+        if config.link.url.startswith("http://"):
+            return cls(config, _HttpWire(config.name, http_transport(config, sink)))
+        return cls(config, _SerialWire(config.name, line_transport(config, sink)))
 
     # -- device data ----------------------------------------------------------------------------
     def identify(self) -> str:
         return self.wire.identify()
 
-    def hardware(self) -> IpjrHardware:
-        if self._hw is None:
-            hw = self.wire.limits()
-            if hw.speed_mm_s <= 0 or hw.step_mm <= 0 or hw.max_steps < 1:
-                raise ProtocolError(self.name, f"implausible actuator data {hw}")
-            self._hw = hw
-        return self._hw
+    def _read_hardware(self) -> IpjrHardware:
+        hw = self.wire.limits()
+        if hw.speed_mm_s <= 0 or hw.step_mm <= 0 or hw.max_steps < 1:
+            raise ProtocolError(self.name, f"implausible actuator data {hw}")
+        return hw
+
+    def _report(self, hw: IpjrHardware, st: dict[str, Any]) -> str:
+        v = self.volts()
+        return (f"{st['state']}; potentiometer {v:.3f} V = extension {self.extension_from_volts(v) * 1000:.2f} mm "
+                f"of {hw.stroke_mm:g} mm; step {hw.step_mm:g} mm; fault {st['fault']}")
 
     def status(self) -> dict[str, Any]:
         return self.wire.status()
@@ -337,9 +330,6 @@ class Ipjr:
 
     def _fail(self, message: str, history: list[tuple[int, float]]) -> LengthControlError:
         return LengthControlError(self.name, f"{message}; {stop_quietly(self.name, self.wire.stop)}", history)
-
-    def close(self) -> None:
-        self.link.close()
 
 
 __all__ = ["Ipjr", "IpjrHardware", "LengthResult"]

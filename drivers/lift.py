@@ -8,75 +8,43 @@ an absolute encoder: no homing; `home()` moves back to 0."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-from drivers.errors import MotionIncomplete, OutOfRange, ProtocolError
-from drivers.motion import MotionPlan, Progress, link_drops, name_link_loss, read_limits, sent_motion, wait_for_axis
-from drivers.transport import LineTransport
+from drivers.driver import LineActuator
+from drivers.errors import MotionIncomplete, OutOfRange
+from drivers.motion import (AxisHardware, AxisStatus, MotionPlan, Progress, link_drops, name_link_loss, read_limits,
+                            sent_motion, wait_for_axis, within)
 from drivers.wire import parse_fields, parse_float
-from lab.core.comms import CommsSink, null_sink
 from lab.core.config import LiftConfig
 
 ARRIVAL_TOLERANCE_MM = 0.01
 
 
 @dataclass(frozen=True)
-class LiftStatus:
-    state: str            # IDLE, MOVING, FAULT
+class LiftStatus(AxisStatus):   # state IDLE, MOVING, FAULT
     height_m: float
     target_m: float
-    fault: str
-
-    @property
-    def moving(self) -> bool:
-        return self.state == "MOVING"
 
 
-@dataclass(frozen=True)
-class LiftHardware:
-    min_mm: float
-    max_mm: float
-    speed_mm_s: float
-    settle_s: float
-
-
-class Lift:
+class Lift(LineActuator[AxisHardware]):
     kind = "lift"
+    ident_prefix, what = "LIFT", "a lift"
+    config: LiftConfig
 
-    def __init__(self, config: LiftConfig, transport: LineTransport) -> None:
-        self.config = config
-        self.name = config.name
-        self.link = transport
-        self._hw: LiftHardware | None = None
-        self.moved = False      # a motion command has been sent by this driver (what a clean-up may stop)
+    def _read_hardware(self) -> AxisHardware:
+        return read_limits(self.name, self.link.request, ("min_mm", "max_mm", "speed_mm_s", "settle_s"),
+                           (self.config.min_m * 1000.0, self.config.max_m * 1000.0), "mm", "[lift] min_m/max_m")
 
-    @classmethod
-    def open(cls, config: LiftConfig, sink: CommsSink = null_sink) -> Lift:
-        link = config.link
-        return cls(config, LineTransport(config.name, link.url, sink, reply_timeout_s=link.reply_timeout_s,
-                                         retries=link.retries))
+    def _report(self, hw: AxisHardware, st: LiftStatus) -> str:
+        return (f"{st.state.lower()}, at {st.height_m * 1000:.3f} mm; hardware [{hw.min:g}, "
+                f"{hw.max:g}] mm at {hw.speed:g} mm/s; fault {st.fault}")
 
     # -- queries ------------------------------------------------------------------------------
-    def identify(self) -> str:
-        ident = self.link.request("ID?")
-        if not ident.startswith("LIFT"):
-            raise ProtocolError(self.name, f"ID? says {ident!r}: this is not a lift (check the rig URL)")
-        return ident
-
-    def hardware(self) -> LiftHardware:
-        """The device's travel, speed and settling time (read once), checked against the rig."""
-        if self._hw is None:
-            self._hw = LiftHardware(*read_limits(
-                self.name, self.link.request, ("min_mm", "max_mm", "speed_mm_s", "settle_s"),
-                (self.config.min_m * 1000.0, self.config.max_m * 1000.0), "mm", "[lift] min_m/max_m"))
-        return self._hw
-
     def status(self) -> LiftStatus:
         req = "STATUS?"
         f = parse_fields(self.name, req, self.link.request(req), ("state", "pos_mm", "target_mm", "fault"))
-        return LiftStatus(f["state"], parse_float(self.name, req, f["pos_mm"]) / 1000.0,
-                          parse_float(self.name, req, f["target_mm"]) / 1000.0, f["fault"])
+        return LiftStatus(state=f["state"], height_m=parse_float(self.name, req, f["pos_mm"]) / 1000.0,
+                          target_m=parse_float(self.name, req, f["target_mm"]) / 1000.0, fault=f["fault"])
 
     def position(self) -> float:
         """Current height, m."""
@@ -88,17 +56,10 @@ class Lift:
 
     def check_height(self, height_m: float) -> None:
         """Refuse a height outside the rig's limits (no I/O: usable for --dry-run)."""
-        lo, hi = self.limits_m
-        if not math.isfinite(height_m) or not lo - 1e-12 <= height_m <= hi + 1e-12:
-            raise OutOfRange(self.name, "lift height", height_m, (lo, hi), "m", "rig [lift] min_m/max_m")
+        if not within(height_m, self.limits_m):
+            raise OutOfRange(self.name, "lift height", height_m, self.limits_m, "m", "rig [lift] min_m/max_m")
 
     # -- motion -------------------------------------------------------------------------------
-    def stop(self) -> None:
-        self.link.request("STOP", idempotent=True)
-
-    def clear(self) -> None:
-        self.link.request("CLEAR", idempotent=True)
-
     def move_to(self, height_m: float, progress: Progress | None = None) -> float:
         """Move to an absolute height (m) and wait until settled; returns the reached height."""
         self.check_height(height_m)
@@ -111,7 +72,7 @@ class Lift:
     def _move(self, line: str, target_mm: float, progress: Progress | None) -> float:
         hw = self.hardware()
         start_mm = self.status().height_m * 1000.0
-        plan = MotionPlan.of(f"to {target_mm:.3f} mm", target_mm - start_mm, hw.speed_mm_s, hw.settle_s,
+        plan = MotionPlan.of(f"to {target_mm:.3f} mm", target_mm - start_mm, hw.speed, hw.settle_s,
                              self.config.link.margin_s, self.name)
         drops = link_drops(self.link)
         sent_motion(self, lambda: self.link.request(line, idempotent=False), self.stop)
@@ -123,6 +84,3 @@ class Lift:
                 self.name, f"stopped at {reached:.3f} mm, short of the target {target_mm:.3f} mm "
                            f"(state {final.state}, fault {final.fault})"), self.link, drops)
         return reached / 1000.0
-
-    def close(self) -> None:
-        self.link.close()

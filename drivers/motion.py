@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Callable, Protocol, TypeVar
+from typing import Callable, ClassVar, TypeVar
 
 from drivers.errors import (DeviceError, DeviceFault, DeviceTimeout, Disconnected, MotionIncomplete, OutOfRange,
                             ProtocolError, RigMismatch)
@@ -139,9 +139,27 @@ def wait_until_idle(device: str, plan: MotionPlan, poll: Callable[[], Poll], sto
         raise
 
 
+def within(value: float, limits: tuple[float, float]) -> bool:
+    """A finite value inside the rig's soft limits (a rounding's worth of slack)."""
+    lo, hi = limits
+    return math.isfinite(value) and lo - 1e-12 <= value <= hi + 1e-12
+
+
+@dataclass(frozen=True)
+class AxisHardware:
+    """A single-axis controller's hardware record, its `LIMITS?` reply in its wire unit (mm, deg):
+    travel, speed, settling time."""
+
+    min: float
+    max: float
+    speed: float          # unit per s
+    settle_s: float
+    unit: str
+
+
 def read_limits(device: str, request: Callable[[str], str], keys: tuple[str, str, str, str],
                 rig_range: tuple[float, float], unit: str, fix: str, *, rig: str = "rig limits",
-                travel: str = "travel") -> tuple[float, float, float, float]:
+                travel: str = "travel") -> AxisHardware:
     """A controller's `LIMITS?` (min, max, speed per s, settle s; wire units, named by `keys`),
     checked against the rig's soft limits `rig_range` (the same units): a rig wider than the
     hardware's travel is a RigMismatch naming the rig keys to `fix`, a speed <= 0 a ProtocolError."""
@@ -154,16 +172,21 @@ def read_limits(device: str, request: Callable[[str], str], keys: tuple[str, str
                                   f"[{lo_hw:g}, {hi_hw:g}] {unit}: fix {fix}")
     if speed <= 0:
         raise ProtocolError(device, f"LIMITS? reports speed {speed} {unit}/s")
-    return lo_hw, hi_hw, speed, settle
+    return AxisHardware(lo_hw, hi_hw, speed, settle, unit)
 
 
-class AxisStatus(Protocol):
+@dataclass(frozen=True)
+class AxisStatus:
+    """A line controller's `STATUS?`: its state (IDLE, MOVING, FAULT, ...) and its fault ("none" or a
+    one-word reason); a device's own status adds its position."""
+
+    state: str
+    fault: str
+    motion_states: ClassVar[tuple[str, ...]] = ("MOVING",)
+
     @property
-    def state(self) -> str: ...
-    @property
-    def fault(self) -> str: ...
-    @property
-    def moving(self) -> bool: ...
+    def moving(self) -> bool:
+        return self.state in self.motion_states
 
 
 S = TypeVar("S", bound=AxisStatus)

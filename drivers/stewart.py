@@ -12,58 +12,44 @@ mounting: world_T_base * base_T_platform * platform_T_camera."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 
+from drivers.driver import LineActuator
 from drivers.errors import DeviceFault, MotionIncomplete, OutOfRange, ProtocolError, WorkspaceError
-from drivers.motion import MotionPlan, Poll, Progress, link_drops, name_link_loss, read_limits, sent_motion, wait_until_idle
+from drivers.motion import (AxisHardware, AxisStatus, MotionPlan, Poll, Progress, link_drops, name_link_loss, read_limits,
+                            sent_motion, wait_until_idle)
 from drivers.stewart_kinematics import IkResult, StewartKinematics, as_pose, describe
 from drivers.transport import LineTransport
 from drivers.wire import parse_fields, parse_floats
-from lab.core.comms import CommsSink, null_sink
 from lab.core.config import StewartConfig
-from lab.core.geometry import Pose3
+from lab.core.geometry import Pose3, to_xyzrpy
 
 ARRIVAL_TOLERANCE_MM = 0.01
 
 
-@dataclass(frozen=True)
-class StewartHardware:
-    min_mm: float
-    max_mm: float
-    speed_mm_s: float
-    settle_s: float
-
-
-@dataclass(frozen=True)
-class StewartStatus:
-    state: str            # IDLE, MOVING, FAULT
-    fault: str
-
-    @property
-    def moving(self) -> bool:
-        return self.state == "MOVING"
-
-
-class Stewart:
+class Stewart(LineActuator[AxisHardware]):
     kind = "stewart"
+    ident_prefix, what = "STEWART", "a Stewart controller"
+    config: StewartConfig
 
     def __init__(self, config: StewartConfig, transport: LineTransport) -> None:
-        self.config = config
-        self.name = config.name
-        self.link = transport
+        super().__init__(config, transport)
         self.kinematics = StewartKinematics(config.geometry)
-        self._hw: StewartHardware | None = None
         self._last_pose = Pose3()
-        self.moved = False      # a motion command has been sent by this driver (what a clean-up may stop)
 
-    @classmethod
-    def open(cls, config: StewartConfig, sink: CommsSink = null_sink) -> Stewart:
-        link = config.link
-        return cls(config, LineTransport(config.name, link.url, sink, reply_timeout_s=link.reply_timeout_s,
-                                         retries=link.retries))
+    def _read_hardware(self) -> AxisHardware:
+        g = self.config.geometry
+        return read_limits(self.name, self.link.request, ("min_mm", "max_mm", "speed_mm_s", "settle_s"),
+                           (g.leg_min_m * 1000, g.leg_max_m * 1000), "mm", "[stewart] leg_min_m/leg_max_m",
+                           rig="rig leg limits", travel="stroke")
+
+    def _report(self, hw: AxisHardware, st: AxisStatus) -> str:
+        pose = np.round(to_xyzrpy(self.pose()), 6) + 0.0  # no '-0.0000'
+        return (f"{st.state.lower()}; platform at x {pose[0]:+.4f} y {pose[1]:+.4f} z {pose[2]:+.4f} m, "
+                f"roll {np.degrees(pose[3]):+.2f} pitch {np.degrees(pose[4]):+.2f} yaw {np.degrees(pose[5]):+.2f} deg "
+                f"from home; legs [{hw.min:g}, {hw.max:g}] mm at {hw.speed:g} mm/s; fault {st.fault}")
 
     # -- pure: no I/O ---------------------------------------------------------------------------
     def ik(self, pose: Pose3 | Sequence[float]) -> IkResult:
@@ -80,25 +66,11 @@ class Stewart:
         return self.config.world_T_base.compose(self.kinematics.base_T_platform(pose)).compose(platform_T_camera)
 
     # -- queries --------------------------------------------------------------------------------
-    def identify(self) -> str:
-        ident = self.link.request("ID?")
-        if not ident.startswith("STEWART"):
-            raise ProtocolError(self.name, f"ID? says {ident!r}: this is not a Stewart controller (check the rig URL)")
-        return ident
-
-    def hardware(self) -> StewartHardware:
-        if self._hw is None:
-            g = self.config.geometry
-            self._hw = StewartHardware(*read_limits(
-                self.name, self.link.request, ("min_mm", "max_mm", "speed_mm_s", "settle_s"),
-                (g.leg_min_m * 1000, g.leg_max_m * 1000), "mm", "[stewart] leg_min_m/leg_max_m",
-                rig="rig leg limits", travel="stroke"))
-        return self._hw
-
-    def status(self) -> StewartStatus:
+    def status(self) -> AxisStatus:
+        """State IDLE, MOVING or FAULT."""
         req = "STATUS?"
         f = parse_fields(self.name, req, self.link.request(req), ("state", "fault"))
-        return StewartStatus(f["state"], f["fault"])
+        return AxisStatus(f["state"], f["fault"])
 
     def legs(self) -> np.ndarray:
         """Measured leg lengths, m."""
@@ -114,12 +86,6 @@ class Stewart:
         return self._last_pose
 
     # -- motion ---------------------------------------------------------------------------------
-    def stop(self) -> None:
-        self.link.request("STOP", idempotent=True)
-
-    def clear(self) -> None:
-        self.link.request("CLEAR", idempotent=True)
-
     def move_to(self, pose: Pose3 | Sequence[float], progress: Progress | None = None) -> Pose3:
         """Move the platform to a pose relative to home (checked first); returns the reported pose."""
         legs_m = self.check_pose(pose)
@@ -139,7 +105,7 @@ class Stewart:
         hw = self.hardware()
         start = self.legs()
         target_mm = np.round(legs_m * 1000.0, 3)
-        plan = MotionPlan.of(description, float(np.max(np.abs(target_mm - start * 1000.0))), hw.speed_mm_s,
+        plan = MotionPlan.of(description, float(np.max(np.abs(target_mm - start * 1000.0))), hw.speed,
                              hw.settle_s, self.config.link.margin_s, self.name)
         drops = link_drops(self.link)
         line = "LEGS " + " ".join(f"{x:.3f}" for x in target_mm)
@@ -165,6 +131,3 @@ class Stewart:
                 self.name, f"stopped short of the target {description}: leg {i + 1} at "
                            f"{reached[i] * 1000:.3f} mm, commanded {target_mm[i]:.3f} mm"), self.link, drops)
         return self.pose()
-
-    def close(self) -> None:
-        self.link.close()

@@ -17,7 +17,7 @@ import socket
 import threading
 import urllib.parse
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from typing import Any, Sequence
+from typing import Any, Self, Sequence
 
 from lab.core.config import Rig, load_rig
 
@@ -26,14 +26,42 @@ class ScriptError(AssertionError):
     pass
 
 
-class ScriptedLineDevice:
+class _Script:
+    """What both scripted devices share: the exchanges expected in order (each's first element is
+    the request), what arrived, what was wrong; served on a thread while the block runs, checked
+    when it ends without an error."""
+
+    def __init__(self, exchanges: Sequence[tuple[Any, ...]]) -> None:
+        self.exchanges = list(exchanges)
+        self.received: list[Any] = []
+        self.problems: list[str] = []
+        self._i = 0
+        self._thread: threading.Thread
+
+    def __enter__(self) -> Self:
+        self._thread.start()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self._shut_down()
+        if exc_type is None:
+            self.verify()
+
+    def _shut_down(self) -> None:
+        raise NotImplementedError
+
+    def verify(self) -> None:
+        if self._i < len(self.exchanges):
+            self.problems.append(f"expected requests never sent: {[x[0] for x in self.exchanges[self._i:]]}")
+        if self.problems:
+            raise ScriptError("; ".join(self.problems))
+
+
+class ScriptedLineDevice(_Script):
     """Expects request lines in order; answers each with its scripted reply bytes."""
 
     def __init__(self, exchanges: Sequence[tuple[bytes, bytes | None]]) -> None:
-        self.exchanges = list(exchanges)
-        self.received: list[bytes] = []
-        self.problems: list[str] = []
-        self._i = 0
+        super().__init__(exchanges)
         self._stop = threading.Event()
         self._sock = socket.socket()
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -79,22 +107,10 @@ class ScriptedLineDevice:
                         if reply is not None:
                             conn.sendall(tag + reply)
 
-    def __enter__(self) -> ScriptedLineDevice:
-        self._thread.start()
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def _shut_down(self) -> None:
         self._stop.set()
         self._thread.join(timeout=1.0)
         self._sock.close()
-        if exc_type is None:
-            self.verify()
-
-    def verify(self) -> None:
-        if self._i < len(self.exchanges):
-            self.problems.append(f"expected requests never sent: {[w for w, _ in self.exchanges[self._i:]]}")
-        if self.problems:
-            raise ScriptError("; ".join(self.problems))
 
 
 def _untag(line: bytes) -> tuple[bytes, bytes]:
@@ -106,14 +122,11 @@ def _untag(line: bytes) -> tuple[bytes, bytes]:
     return b"", line
 
 
-class ScriptedHttpDevice:
+class ScriptedHttpDevice(_Script):
     """Expects GET targets (path + query) in order; answers (status, JSON text or bytes)."""
 
     def __init__(self, exchanges: Sequence[tuple[str, int, bytes | str]]) -> None:
-        self.exchanges = list(exchanges)
-        self.received: list[str] = []
-        self.problems: list[str] = []
-        self._i = 0
+        super().__init__(exchanges)
         outer = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -144,21 +157,9 @@ class ScriptedHttpDevice:
         self.url = f"http://127.0.0.1:{self._httpd.server_address[1]}"
         self._thread = threading.Thread(target=self._httpd.serve_forever, kwargs={"poll_interval": 0.02}, daemon=True)
 
-    def __enter__(self) -> ScriptedHttpDevice:
-        self._thread.start()
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
+    def _shut_down(self) -> None:
         self._httpd.shutdown()
         self._httpd.server_close()
-        if exc_type is None:
-            self.verify()
-
-    def verify(self) -> None:
-        if self._i < len(self.exchanges):
-            self.problems.append(f"expected requests never sent: {[w for w, _, _ in self.exchanges[self._i:]]}")
-        if self.problems:
-            raise ScriptError("; ".join(self.problems))
 
 
 def fast_sim_rig(reply_timeout_s: float = 0.25, margin_s: float = 0.2, retries: int = 2) -> Rig:

@@ -9,69 +9,42 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from drivers.errors import MotionIncomplete, OutOfRange, ProtocolError
-from drivers.motion import MotionPlan, Progress, link_drops, name_link_loss, read_limits, sent_motion, wait_for_axis
-from drivers.transport import LineTransport
+import numpy as np
+
+from drivers.driver import LineActuator
+from drivers.errors import MotionIncomplete, OutOfRange
+from drivers.motion import (AxisHardware, AxisStatus, MotionPlan, Progress, link_drops, name_link_loss, read_limits,
+                            sent_motion, wait_for_axis, within)
 from drivers.wire import parse_fields, parse_float
-from lab.core.comms import CommsSink, null_sink
 from lab.core.config import TurntableConfig
 
 ARRIVAL_TOLERANCE_DEG = 0.01
 
 
 @dataclass(frozen=True)
-class TurntableStatus:
-    state: str            # IDLE, MOVING, HOMING, FAULT
+class TurntableStatus(AxisStatus):   # state IDLE, MOVING, HOMING, FAULT
     angle_rad: float
     target_rad: float
     homed: bool
-    fault: str            # "none" or a one-word reason
-
-    @property
-    def moving(self) -> bool:
-        return self.state in ("MOVING", "HOMING")
+    motion_states = ("MOVING", "HOMING")
 
 
-@dataclass(frozen=True)
-class TurntableHardware:
-    min_deg: float
-    max_deg: float
-    speed_deg_s: float
-    settle_s: float
-
-
-class Turntable:
+class Turntable(LineActuator[AxisHardware]):
     kind = "turntable"
+    ident_prefix, what = "TURNTABLE", "a turntable"
+    config: TurntableConfig
 
-    def __init__(self, config: TurntableConfig, transport: LineTransport) -> None:
-        self.config = config
-        self.name = config.name
-        self.link = transport
-        self._hw: TurntableHardware | None = None
-        self.moved = False      # a motion command has been sent by this driver (what a clean-up may stop)
+    def _read_hardware(self) -> AxisHardware:
+        return read_limits(self.name, self.link.request, ("min_deg", "max_deg", "speed_deg_s", "settle_s"),
+                           (math.degrees(self.config.min_rad), math.degrees(self.config.max_rad)), "deg",
+                           "[turntable] min_deg/max_deg")
 
-    @classmethod
-    def open(cls, config: TurntableConfig, sink: CommsSink = null_sink) -> Turntable:
-        link = config.link
-        return cls(config, LineTransport(config.name, link.url, sink, reply_timeout_s=link.reply_timeout_s,
-                                         retries=link.retries))
+    def _report(self, hw: AxisHardware, st: TurntableStatus) -> str:
+        return (f"{st.state.lower()}, {'homed' if st.homed else 'NOT homed (HOME before moving)'}, "
+                f"at {np.degrees(st.angle_rad):.3f} deg; hardware [{hw.min:g}, {hw.max:g}] deg at "
+                f"{hw.speed:g} deg/s; fault {st.fault}")
 
     # -- queries ------------------------------------------------------------------------------
-    def identify(self) -> str:
-        ident = self.link.request("ID?")
-        if not ident.startswith("TURNTABLE"):
-            raise ProtocolError(self.name, f"ID? says {ident!r}: this is not a turntable (check the rig URL)")
-        return ident
-
-    def hardware(self) -> TurntableHardware:
-        """The device's travel, speed and settling time (read once), checked against the rig."""
-        if self._hw is None:
-            self._hw = TurntableHardware(*read_limits(
-                self.name, self.link.request, ("min_deg", "max_deg", "speed_deg_s", "settle_s"),
-                (math.degrees(self.config.min_rad), math.degrees(self.config.max_rad)), "deg",
-                "[turntable] min_deg/max_deg"))
-        return self._hw
-
     def status(self) -> TurntableStatus:
         req = "STATUS?"
         f = parse_fields(self.name, req, self.link.request(req), ("state", "pos_deg", "target_deg", "homed", "fault"))
@@ -93,25 +66,19 @@ class Turntable:
 
     def check_angle(self, angle_rad: float) -> None:
         """Refuse an angle outside the rig's limits (no I/O: usable for --dry-run)."""
-        lo, hi = self.limits_rad
-        if not math.isfinite(angle_rad) or not lo - 1e-12 <= angle_rad <= hi + 1e-12:
+        if not within(angle_rad, self.limits_rad):
+            lo, hi = self.limits_rad
             raise OutOfRange(self.name, "turntable angle", math.degrees(angle_rad), (math.degrees(lo), math.degrees(hi)),
                              "deg", "rig [turntable] min_deg/max_deg")
 
     # -- motion -------------------------------------------------------------------------------
-    def stop(self) -> None:
-        self.link.request("STOP", idempotent=True)
-
-    def clear(self) -> None:
-        self.link.request("CLEAR", idempotent=True)
-
     def home(self, progress: Progress | None = None) -> float:
         """Find the index mark; afterwards the angle is 0.  Returns the angle (rad)."""
         hw = self.hardware()
         st = self.status()
         # Before homing the reported angle may be anything: allow a full sweep of the travel.
-        distance = abs(math.degrees(st.angle_rad)) if st.homed else hw.max_deg - hw.min_deg
-        plan = MotionPlan.of("home", distance, hw.speed_deg_s, hw.settle_s, self.config.link.margin_s, self.name)
+        distance = abs(math.degrees(st.angle_rad)) if st.homed else hw.max - hw.min
+        plan = MotionPlan.of("home", distance, hw.speed, hw.settle_s, self.config.link.margin_s, self.name)
         drops = link_drops(self.link)
         self._command("HOME")
         final = self._wait(plan, 0.0, math.degrees(st.angle_rad), progress)
@@ -128,7 +95,7 @@ class Turntable:
         start = self.status()
         target_deg = math.degrees(angle_rad)
         start_deg = math.degrees(start.angle_rad)
-        plan = MotionPlan.of(f"to {target_deg:.3f} deg", target_deg - start_deg, hw.speed_deg_s, hw.settle_s,
+        plan = MotionPlan.of(f"to {target_deg:.3f} deg", target_deg - start_deg, hw.speed, hw.settle_s,
                              self.config.link.margin_s, self.name)
         drops = link_drops(self.link)
         self._command(f"MOVE {target_deg:.3f}")
@@ -150,6 +117,3 @@ class Turntable:
     def _wait(self, plan: MotionPlan, target_deg: float, start_deg: float, progress: Progress | None) -> TurntableStatus:
         return wait_for_axis(self.name, plan, self.status, lambda st: math.degrees(st.angle_rad), target_deg, start_deg,
                              "deg", self.stop, progress)
-
-    def close(self) -> None:
-        self.link.close()

@@ -152,7 +152,7 @@ def hand_eye(views: Sequence[CalibrationView], cameras: Sequence[Pose3 | None], 
         if v.motion.lift_m:        # back down the (nominally vertical) lift: the base at height 0
             world_T_camera = Pose3(Rot3(), np.array([0.0, 0.0, -v.motion.lift_m])).compose(world_T_camera)
         cw = world_T_camera.inverse()
-        gb = geometry.H(v.motion).inverse()
+        gb = geometry.base_T_platform(v.motion).inverse()
         R_w2c.append(cw.rotation().matrix())
         t_w2c.append(cw.translation().reshape(3, 1))
         R_b2g.append(gb.rotation().matrix())

@@ -3,20 +3,26 @@ angle and Stewart pose and of calibration variables the whole run shares.
 
     structure_T_camera(k) = structure_T_world(0) · A · Rz(-a_k) · A^-1 · lift(h_k) · B · H_k · M
 
-- A = world_T_axis: the turntable's true axis is A's z axis.  Only its tilt (rotation about x, y)
+(the letters are docs/sf_graphslam.md's; the code calls each by what it is, as below)
+
+- A = `world_T_axis`: the turntable's true axis is A's z axis.  Only its tilt (rotation about x, y)
   and offset (x, y) are observable; its yaw and height are pinned at zero by a tight prior (they
   are the gauge of "where on the axis, at which encoder zero").  The world frame is where the plate
   sits at encoder zero, so structure_T_world(0) is the design's.
-- B = world_T_base (Stewart base) at lift height 0, M = platform_T_camera (camera mount), both 6-dof.
-- lift(h) = L · Tz(h) · L^-1, a pure translation by h along L's z axis: a rig with a lift carries
-  the Stewart base along its travel, whose direction is L's z axis (L = world_T_lift; only its tilt
-  is observable, its yaw and position are gauge, pinned by a tight prior).  A view at h = 0 has
-  lift(0) = identity: its factor is the four-key one, and a run that never moves the lift has no L
-  variable at all (its graph is the one it was before the lift existed).
-- H_k = home · stewart_pose_k: the platform pose the controller was told (legs are exact; their
-  per-move repeatability is the chain factor's noise, with the turntable's).
+- B = `world_T_base` (Stewart base) at lift height 0, M = `platform_T_camera` (camera mount), both
+  6-dof.
+- Rz(-a_k) = `turn`: the view's turntable angle a_k, seen from the plate (which turned).
+- lift(h) = L · Tz(h) · L^-1 (Tz(h) = `rise`), a pure translation by h along L's z axis: a rig with
+  a lift carries the Stewart base along its travel, whose direction is L's z axis (L =
+  `world_T_lift`; only its tilt is observable, its yaw and position are gauge, pinned by a tight
+  prior).  A view at h = 0 has lift(0) = identity: its factor is the four-key one, and a run that
+  never moves the lift has no L variable at all (its graph is the one it was before the lift existed).
+- H_k = `base_T_platform` = home · stewart_pose_k: the platform pose the controller was told (legs
+  are exact; their per-move repeatability is the chain factor's noise, with the turntable's).
 
-`ChainFactor` is one GTSAM `CustomFactor` per view on (A, B, M, C_k): the view's camera variable
+`chain_factor` is one GTSAM `CustomFactor` per view on (A, B, M, C_k), and L for a lifted view (the
+same factor: without a lift term its chain is the one above with lift(h) left out, not multiplied by
+an identity, so a rig or a view without a lift pays nothing for it): the view's camera variable
 stays, so tag observations remain plain C++ `BetweenFactorPose3`s and only one Python factor per
 view is added.  Its noise is the devices' repeatability, propagated to the camera at the prior.
 
@@ -47,7 +53,7 @@ from lab.core.rig_calibration import RigCalibration
 AXIS, BASE, MOUNT, INTRINSICS, LIFT = (gtsam.symbol(c, 0) for c in "abmkl")
 # the true lens's radial distortion against the camera file's: (dk1, dk2), a 2-vector variable
 DISTORTION = gtsam.symbol("d", 0)
-_E_RZ = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+_ABOUT_Z = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])    # a rotation about z, in GTSAM's tangent
 GAUGE_SIGMA = 1e-7
 
 
@@ -78,22 +84,24 @@ class RigGeometry:
                            rig.stewart.world_T_base, rig.camera.platform_T_camera, np.asarray(K, float),
                            rig.calibration)
 
-    def H(self, motion: ViewMotion) -> Pose3:
+    def base_T_platform(self, motion: ViewMotion) -> Pose3:
+        """H_k: the platform where the controller was told to put it (home, then the commanded pose)."""
         return Pose3(Rot3(), self.home_m).compose(from_xyzrpy(motion.stewart_pose))
 
     @staticmethod
-    def lifted(motion: ViewMotion, B: Pose3, L: Pose3 | None = None) -> Pose3:
-        """The Stewart base carried to the view's lift height along L's z axis."""
+    def lifted(motion: ViewMotion, world_T_base: Pose3, world_T_lift: Pose3 | None = None) -> Pose3:
+        """The Stewart base carried to the view's lift height along the lift's z axis."""
         if not motion.lift_m:
-            return B
-        L = L if L is not None else Pose3()
-        return L.compose(Pose3(Rot3(), np.array([0.0, 0.0, motion.lift_m]))).compose(L.inverse()).compose(B)
+            return world_T_base
+        world_T_lift = world_T_lift if world_T_lift is not None else Pose3()
+        return world_T_lift.compose(rise(motion)).compose(world_T_lift.inverse()).compose(world_T_base)
 
-    def predict(self, motion: ViewMotion, A: Pose3, B: Pose3, M: Pose3, L: Pose3 | None = None) -> Pose3:
-        """structure_T_camera for a view, given calibration values (L: the lift's axis frame)."""
-        Rz = Pose3(Rot3.Rz(-motion.turntable_rad), np.zeros(3))
-        return self.structure_T_world0.compose(A).compose(Rz).compose(A.inverse()).compose(
-            self.lifted(motion, B, L)).compose(self.H(motion)).compose(M)
+    def predict(self, motion: ViewMotion, world_T_axis: Pose3, world_T_base: Pose3, platform_T_camera: Pose3,
+                world_T_lift: Pose3 | None = None) -> Pose3:
+        """structure_T_camera for a view, given calibration values."""
+        return (self.structure_T_world0.compose(world_T_axis).compose(turn(motion)).compose(world_T_axis.inverse())
+                .compose(self.lifted(motion, world_T_base, world_T_lift)).compose(self.base_T_platform(motion))
+                .compose(platform_T_camera))
 
     def predict_nominal(self, motion: ViewMotion) -> Pose3:
         return self.predict(motion, Pose3(), self.nominal_world_T_base, self.nominal_platform_T_camera)
@@ -123,93 +131,86 @@ class RigGeometry:
     def lift_prior(self) -> tuple[Pose3, np.ndarray]:
         """The lift's axis: vertical, known to the [calibration] lift_axis_sigma in tilt; its yaw
         and position are gauge (they do not change lift(h))."""
-        t = self.config.lift_axis_sigma_rad
-        return Pose3(), np.diag([t, t, GAUGE_SIGMA, GAUGE_SIGMA, GAUGE_SIGMA, GAUGE_SIGMA]) ** 2
+        tilt = self.config.lift_axis_sigma_rad
+        return Pose3(), np.diag([tilt, tilt, GAUGE_SIGMA, GAUGE_SIGMA, GAUGE_SIGMA, GAUGE_SIGMA]) ** 2
 
-    def chain_noise(self, motion: ViewMotion, M: Pose3 | None = None) -> gtsam.noiseModel.Base:
+    def chain_noise(self, motion: ViewMotion, platform_T_camera: Pose3 | None = None) -> gtsam.noiseModel.Base:
         """The devices' repeatability, propagated to the camera pose (its tangent).  A lifted view
         adds the lift carriage's: a translation of the base, isotropic, so the same in the camera's
         axes."""
         c = self.config
-        M = M or self.nominal_platform_T_camera
-        AdM = M.inverse().AdjointMap()
-        S = np.diag([c.stewart_repeatability_rad] * 3 + [c.stewart_repeatability_m] * 3) ** 2
-        X2 = self.nominal_world_T_base.compose(self.H(motion)).compose(M)
-        j = -X2.inverse().AdjointMap() @ _E_RZ
-        cov = AdM @ S @ AdM.T + c.turntable_repeatability_rad ** 2 * np.outer(j, j) + np.eye(6) * 1e-12
+        platform_T_camera = platform_T_camera or self.nominal_platform_T_camera
+        platform_to_camera = platform_T_camera.inverse().AdjointMap()     # a platform twist, in the camera's tangent
+        stewart_cov = np.diag([c.stewart_repeatability_rad] * 3 + [c.stewart_repeatability_m] * 3) ** 2
+        axis_T_camera = self.nominal_world_T_base.compose(self.base_T_platform(motion)).compose(platform_T_camera)
+        per_turn = -axis_T_camera.inverse().AdjointMap() @ _ABOUT_Z    # the camera's motion per rad of turntable error
+        cov = (platform_to_camera @ stewart_cov @ platform_to_camera.T
+               + c.turntable_repeatability_rad ** 2 * np.outer(per_turn, per_turn) + np.eye(6) * 1e-12)
         if motion.lift_m:
             cov[3:, 3:] += np.eye(3) * c.lift_repeatability_m ** 2
         return gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
 
 
+def turn(motion: ViewMotion) -> Pose3:
+    """Rz(-a_k): the view's turntable angle, as the camera sees the plate turn under it."""
+    return Pose3(Rot3.Rz(-motion.turntable_rad), np.zeros(3))
+
+
+def rise(motion: ViewMotion) -> Pose3:
+    """Tz(h_k): the view's lift height, along the lift frame's z axis."""
+    return Pose3(Rot3(), np.array([0.0, 0.0, motion.lift_m]))
+
+
 def chain_factor(geometry: RigGeometry, motion: ViewMotion, camera_key: int,
-                 noise: gtsam.noiseModel.Base | None = None) -> gtsam.CustomFactor:
-    """e = Log(P^-1 · C) with P the chain's prediction; Jacobians by the adjoint (checked against
-    numerical derivatives in tests/test_rig_model.py).  Keys A, B, M, C; and L for a lifted view."""
-    if motion.lift_m:
-        return _lifted_chain_factor(geometry, motion, camera_key, noise)
-    S0inv = geometry.structure_T_world0
-    Rz = Pose3(Rot3.Rz(-motion.turntable_rad), np.zeros(3))
-    H = geometry.H(motion)
+                 noise: gtsam.noiseModel.Base | None = None, *, lift_key: int | None = None) -> gtsam.CustomFactor:
+    """e = Log(P^-1 · C) with P the chain's prediction of structure_T_camera C; Jacobians by the
+    adjoint (checked against numerical derivatives in tests/test_rig_model.py).  Keys A, B, M, C;
+    and L (`lift_key`, by default LIFT for a lifted view and none at h = 0).
+
+    A right perturbation of a frame that appears as X · W · X^-1 (A about the turn, L about the
+    rise) moves P by (Ad(after-first^-1) - Ad(after-second^-1)) of it.  Without a lift term the chain
+    is the one with lift(h) left out, computed exactly as before the lift existed; with one at h = 0
+    it gives the same error and Jacobians and a zero Jacobian on L (tests/test_rig_model.py)."""
+    if lift_key is None and motion.lift_m:
+        lift_key = LIFT
+    structure_T_world0 = geometry.structure_T_world0
+    turn_k = turn(motion)
+    rise_k = rise(motion)
+    base_T_platform = geometry.base_T_platform(motion)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
-        A = values.atPose3(AXIS)
-        B = values.atPose3(BASE)
-        M = values.atPose3(MOUNT)
-        C = values.atPose3(camera_key)
-        HM = H.compose(M)
-        X2 = A.inverse().compose(B).compose(HM)
-        X1 = Rz.compose(X2)
-        P = S0inv.compose(A).compose(X1)
-        E = P.inverse().compose(C)
-        e = Pose3.Logmap(E)
+        world_T_axis = values.atPose3(AXIS)
+        world_T_base = values.atPose3(BASE)
+        platform_T_camera = values.atPose3(MOUNT)
+        structure_T_camera = values.atPose3(camera_key)
+        # each product is the chain after one letter: H M, (L^-1 ... M, Tz ... M,) A^-1 ... M, Rz ... M
+        base_T_camera = base_T_platform.compose(platform_T_camera)
+        if lift_key is None:
+            axis_T_camera = world_T_axis.inverse().compose(world_T_base).compose(base_T_camera)
+        else:
+            world_T_lift = values.atPose3(lift_key)
+            lift_T_camera = world_T_lift.inverse().compose(world_T_base).compose(base_T_camera)
+            raised_lift_T_camera = rise_k.compose(lift_T_camera)
+            axis_T_camera = world_T_axis.inverse().compose(world_T_lift).compose(raised_lift_T_camera)
+        turned_axis_T_camera = turn_k.compose(axis_T_camera)  # the camera in the axis frame turned with the plate
+        predicted = structure_T_world0.compose(world_T_axis).compose(turned_axis_T_camera)
+        predicted_T_camera = predicted.inverse().compose(structure_T_camera)
+        e = Pose3.Logmap(predicted_T_camera)
         if jacobians is not None:
-            Jl = Pose3.LogmapDerivative(e)          # d Log(E Exp(x)) / dx
-            JP = -Jl @ E.inverse().AdjointMap()
-            jacobians[0] = JP @ (X1.inverse().AdjointMap() - X2.inverse().AdjointMap())
-            jacobians[1] = JP @ HM.inverse().AdjointMap()
-            jacobians[2] = JP
-            jacobians[3] = Jl
+            d_log = Pose3.LogmapDerivative(e)          # d Log(P^-1 C Exp(x)) / dx
+            d_predicted = -d_log @ predicted_T_camera.inverse().AdjointMap()
+            jacobians[0] = d_predicted @ (turned_axis_T_camera.inverse().AdjointMap()
+                                          - axis_T_camera.inverse().AdjointMap())
+            jacobians[1] = d_predicted @ base_T_camera.inverse().AdjointMap()
+            jacobians[2] = d_predicted
+            jacobians[3] = d_log
+            if lift_key is not None:
+                jacobians[4] = d_predicted @ (raised_lift_T_camera.inverse().AdjointMap()
+                                              - lift_T_camera.inverse().AdjointMap())
         return e
 
-    return gtsam.CustomFactor(noise or geometry.chain_noise(motion), [AXIS, BASE, MOUNT, camera_key], error)
-
-
-def _lifted_chain_factor(geometry: RigGeometry, motion: ViewMotion, camera_key: int,
-                         noise: gtsam.noiseModel.Base | None) -> gtsam.CustomFactor:
-    """The chain of a view at lift height h: P = S0^-1 · A · Rz · A^-1 · (L · Tz(h) · L^-1) · B · H · M.
-    A right perturbation of a frame that appears as X · W · X^-1 (A about Rz, L about Tz) moves P by
-    (Ad(after-first^-1) - Ad(after-second^-1)) of it, as for the turntable's axis."""
-    S0inv = geometry.structure_T_world0
-    Rz = Pose3(Rot3.Rz(-motion.turntable_rad), np.zeros(3))
-    Tz = Pose3(Rot3(), np.array([0.0, 0.0, motion.lift_m]))
-    H = geometry.H(motion)
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
-        A = values.atPose3(AXIS)
-        B = values.atPose3(BASE)
-        M = values.atPose3(MOUNT)
-        C = values.atPose3(camera_key)
-        L = values.atPose3(LIFT)
-        HM = H.compose(M)
-        Z2 = L.inverse().compose(B).compose(HM)       # after L^-1
-        Z1 = Tz.compose(Z2)                           # after L
-        X2 = A.inverse().compose(L).compose(Z1)       # after A^-1
-        X1 = Rz.compose(X2)                           # after A
-        P = S0inv.compose(A).compose(X1)
-        E = P.inverse().compose(C)
-        e = Pose3.Logmap(E)
-        if jacobians is not None:
-            Jl = Pose3.LogmapDerivative(e)
-            JP = -Jl @ E.inverse().AdjointMap()
-            jacobians[0] = JP @ (X1.inverse().AdjointMap() - X2.inverse().AdjointMap())
-            jacobians[1] = JP @ HM.inverse().AdjointMap()
-            jacobians[2] = JP
-            jacobians[3] = Jl
-            jacobians[4] = JP @ (Z1.inverse().AdjointMap() - Z2.inverse().AdjointMap())
-        return e
-
-    return gtsam.CustomFactor(noise or geometry.chain_noise(motion), [AXIS, BASE, MOUNT, camera_key, LIFT], error)
+    keys = [AXIS, BASE, MOUNT, camera_key] + ([] if lift_key is None else [lift_key])
+    return gtsam.CustomFactor(noise or geometry.chain_noise(motion), keys, error)
 
 
 def cal3_s2(K: np.ndarray) -> gtsam.Cal3_S2:
@@ -251,9 +252,9 @@ def project_corners(world_T_camera: Pose3, world_T_tag: Pose3, local: np.ndarray
     calibration.  All four corners in one pass of numpy: the graph calls this once per corner
     factor per relinearisation, and a loop of gtsam's per-point projections costs twice as much.
     A corner behind the camera gets a large flat error and no gradient, as gtsam's does."""
-    E = world_T_camera.between(world_T_tag)
-    Em = E.matrix()
-    q = local @ Em[:3, :3].T + Em[:3, 3]                 # (4, 3) corners in the camera frame
+    camera_T_tag = world_T_camera.between(world_T_tag)
+    m = camera_T_tag.matrix()
+    q = local @ m[:3, :3].T + m[:3, 3]                   # (4, 3) corners in the camera frame
     z = q[:, 2]
     ok = z > 0
     iz = np.where(ok, 1.0 / np.where(ok, z, 1.0), 0.0)
@@ -267,8 +268,8 @@ def project_corners(world_T_camera: Pose3, world_T_tag: Pose3, local: np.ndarray
     if not want_jacobians:
         return e, None, None, None
     # the normalised image point against the camera's own motion (the classic interaction
-    # matrix), then through the calibration; the tag moves the relative pose E from the other side,
-    # so its Jacobian is the camera's through -Ad(E)
+    # matrix), then through the calibration; the tag moves the relative pose camera_T_tag from
+    # the other side, so its Jacobian is the camera's through -Ad(camera_T_tag)
     xy = x * y
     Ju = np.stack([xy, -(1.0 + x * x), y, -iz, np.zeros(4), x * iz], axis=1)
     Jv = np.stack([1.0 + y * y, -xy, -x, np.zeros(4), -iz, y * iz], axis=1)
@@ -277,7 +278,7 @@ def project_corners(world_T_camera: Pose3, world_T_tag: Pose3, local: np.ndarray
     JC[1::2] = fy * Jv
     if not ok.all():
         JC[np.repeat(~ok, 2)] = 0.0
-    JT = -JC @ E.AdjointMap()
+    JT = -JC @ camera_T_tag.AdjointMap()
     JK = None
     if want_calibration:
         JK = np.zeros((8, 5))

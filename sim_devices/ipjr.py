@@ -22,7 +22,8 @@ import threading
 import numpy as np
 
 from sim_devices.http_server import Reply, json_reply
-from sim_devices.line_server import (E_BUSY, E_FAULT, E_RANGE, E_SYNTAX, LineDevice, Refuse, integer, nargs)
+from sim_devices.controller import Controller
+from sim_devices.line_server import E_BUSY, E_FAULT, E_RANGE, E_SYNTAX, Refuse, integer, nargs
 from sim_devices.motion import Axis
 
 MODEL, FIRMWARE = "LAB-IPJR", "1.0"
@@ -119,29 +120,25 @@ class IpjrActuator:
         return "fault" if self.fault != "none" else ("moving" if self.moving() else "idle")
 
 
-class IpjrSerialSim(LineDevice):
+class IpjrSerialSim(Controller):
     """The Arduino front end."""
 
     motion_verbs = frozenset({"STEP"})
 
     def __init__(self, actuator: IpjrActuator) -> None:
-        super().__init__()
-        self.name = actuator.name
+        super().__init__(actuator.name, actuator, f"IPJR {MODEL} {FIRMWARE}", {
+            "LIMITS?": self._limits, "V?": self._v, "STEP": self._step, "MOVING?": self._moving,
+            "STATUS?": self._status})
         self.act = actuator
-        self.commands.update({
-            "ID?": self._id, "LIMITS?": self._limits, "V?": self._v, "STEP": self._step, "MOVING?": self._moving,
-            "STATUS?": self._status, "STOP": self._stop, "CLEAR": self._clear,
-        })
 
-    def is_moving(self) -> bool:
-        return self.act.moving()
+    @property
+    def fault(self) -> str:   # type: ignore[override]
+        """The actuator's: the serial and HTTP front ends share one latch."""
+        return self.act.fault
 
-    def link_lost(self) -> None:
-        self.act.stop()
-
-    def _id(self, args: list[str]) -> str:
-        nargs(args, 0, "ID?")
-        return f"IPJR {MODEL} {FIRMWARE}"
+    @fault.setter
+    def fault(self, value: str) -> None:
+        self.act.fault = value
 
     def _limits(self, args: list[str]) -> str:
         nargs(args, 0, "LIMITS?")
@@ -165,16 +162,6 @@ class IpjrSerialSim(LineDevice):
     def _status(self, args: list[str]) -> str:
         nargs(args, 0, "STATUS?")
         return f"state={self.act.state().upper()} volts={self.act.volts():.3f} fault={self.act.fault}"
-
-    def _stop(self, args: list[str]) -> str:
-        nargs(args, 0, "STOP")
-        self.act.stop()
-        return ""
-
-    def _clear(self, args: list[str]) -> str:
-        nargs(args, 0, "CLEAR")
-        self.act.clear()
-        return ""
 
 
 def ipjr_routes(act: IpjrActuator):

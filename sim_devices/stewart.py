@@ -16,7 +16,8 @@ from scipy.optimize import least_squares
 
 from lab.core.config import StewartGeometry
 from lab.core.geometry import Pose3, from_xyzrpy, to_xyzrpy
-from sim_devices.line_server import E_RANGE, E_SYNTAX, LineDevice, Refuse, decimal, nargs
+from sim_devices.controller import Controller, check_range, limits_reply
+from sim_devices.line_server import E_SYNTAX, Refuse, decimal, nargs
 from sim_devices.motion import Axis
 
 MODEL, FIRMWARE = "LAB-HEX6", "1.0"
@@ -37,49 +38,30 @@ def platform_pose(geometry: StewartGeometry, legs_m: np.ndarray, guess: np.ndarr
     return from_xyzrpy(sol.x)
 
 
-class StewartSim(LineDevice):
-    name = "stewart"
+class StewartSim(Controller):
     motion_verbs = frozenset({"LEGS", "HOME"})
 
     def __init__(self, legs: Axis, geometry: StewartGeometry, min_mm: float, max_mm: float,
                  name: str = "stewart") -> None:
-        super().__init__()
-        self.name = name
+        super().__init__(name, legs, f"STEWART {MODEL} {FIRMWARE}", {
+            "LIMITS?": self._limits, "LEGS": self._legs, "LEGS?": self._legs_q, "HOME": self._home,
+            "STATUS?": self._status})
         self.legs = legs                  # metres
         self.geometry = geometry
         self.min_mm, self.max_mm = min_mm, max_mm
         self.home_mm = np.linalg.norm(geometry.home_m + geometry.platform_joints_m - geometry.base_joints_m, axis=1) * 1000
-        self.fault = "none"
-        self.commands.update({
-            "ID?": self._id, "LIMITS?": self._limits, "LEGS": self._legs, "LEGS?": self._legs_q,
-            "HOME": self._home, "STATUS?": self._status, "STOP": self._stop, "CLEAR": self._clear,
-        })
-
-    def is_moving(self) -> bool:
-        return self.legs.moving()
-
-    def link_lost(self) -> None:
-        self.legs.stop()
-
-    def _id(self, args: list[str]) -> str:
-        nargs(args, 0, "ID?")
-        return f"STEWART {MODEL} {FIRMWARE}"
 
     def _limits(self, args: list[str]) -> str:
         nargs(args, 0, "LIMITS?")
-        return (f"min_mm={self.min_mm:.3f} max_mm={self.max_mm:.3f} speed_mm_s={self.legs.speed * 1000:.3f} "
-                f"settle_s={self.legs.settle_s:.3f}")
+        return limits_reply("mm", self.min_mm, self.max_mm, self.legs.speed * 1000, self.legs.settle_s)
 
     def _legs(self, args: list[str]) -> str:
         if len(args) != 6:
             raise Refuse(E_SYNTAX, f"expected 6 leg lengths in mm, got {len(args)}: LEGS l1 l2 l3 l4 l5 l6")
         mm = [decimal(a, f"leg {i + 1} length") for i, a in enumerate(args)]
         for i, v in enumerate(mm):
-            if not self.min_mm <= v <= self.max_mm:
-                raise Refuse(E_RANGE, f"leg {i + 1} length {v:.3f} mm outside [{self.min_mm:.3f}, {self.max_mm:.3f}] mm")
-        self._ready()
-        self.legs.start(np.array(mm) / 1000.0, stuck=self.take_stuck())
-        return ""
+            check_range(f"leg {i + 1} length", v, self.min_mm, self.max_mm, "mm")
+        return self._start(np.array(mm) / 1000.0)
 
     def _legs_q(self, args: list[str]) -> str:
         nargs(args, 0, "LEGS?")
@@ -87,24 +69,11 @@ class StewartSim(LineDevice):
 
     def _home(self, args: list[str]) -> str:
         nargs(args, 0, "HOME")
-        self._ready()
-        self.legs.start(self.home_mm / 1000.0, stuck=self.take_stuck())
-        return ""
+        return self._start(self.home_mm / 1000.0)
 
     def _status(self, args: list[str]) -> str:
         nargs(args, 0, "STATUS?")
-        state = "FAULT" if self.fault != "none" else ("MOVING" if self.is_moving() else "IDLE")
-        return f"state={state} fault={self.fault}"
-
-    def _stop(self, args: list[str]) -> str:
-        nargs(args, 0, "STOP")
-        self.legs.stop()
-        return ""
-
-    def _clear(self, args: list[str]) -> str:
-        nargs(args, 0, "CLEAR")
-        self.fault = "none"
-        return ""
+        return f"state={self.state()} fault={self.fault}"
 
 
 def pose_vector(pose: Pose3) -> np.ndarray:

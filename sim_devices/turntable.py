@@ -8,28 +8,23 @@ from __future__ import annotations
 
 import math
 
-from sim_devices.line_server import (E_NOT_HOMED, E_RANGE, LineDevice, Refuse, decimal, nargs)
+from sim_devices.controller import AxisController
+from sim_devices.line_server import E_NOT_HOMED, Refuse, nargs
 from sim_devices.motion import Axis
 
 MODEL, FIRMWARE = "LAB-RT1", "1.0"
 
 
-class TurntableSim(LineDevice):
-    name = "turntable"
-    motion_verbs = frozenset({"MOVE", "HOME"})
+class TurntableSim(AxisController):
+    unit, what = "deg", "angle"
 
     def __init__(self, axis: Axis, min_deg: float, max_deg: float, name: str = "turntable") -> None:
-        super().__init__()
-        self.name = name
-        self.axis = axis                  # radians
-        self.min_deg, self.max_deg = min_deg, max_deg
+        super().__init__(name, axis, f"TURNTABLE {MODEL} {FIRMWARE}", (min_deg, max_deg))   # the axis in radians
         self.homed = False
         self.homing = False
-        self.fault = "none"
-        self.commands.update({
-            "ID?": self._id, "LIMITS?": self._limits, "HOME": self._home, "MOVE": self._move, "POS?": self._pos,
-            "STATUS?": self._status, "STOP": self._stop, "CLEAR": self._clear,
-        })
+
+    def to_wire(self, radians: float | object) -> float:
+        return math.degrees(float(radians))   # type: ignore[arg-type]
 
     # -- state ----------------------------------------------------------------------------------
     def is_moving(self) -> bool:
@@ -41,29 +36,17 @@ class TurntableSim(LineDevice):
 
     def link_lost(self) -> None:
         with self.lock:
-            self.axis.stop()
-            self.homing = False
+            self.stop_motion()
 
-    def _deg(self) -> float:
-        return math.degrees(float(self.axis.position()))
+    def stop_motion(self) -> None:
+        self.axis.stop()
+        self.homing = False
 
-    def _state(self) -> str:
-        if self.fault != "none":
-            return "FAULT"
-        if self.is_moving():
-            return "HOMING" if self.homing else "MOVING"
-        return "IDLE"
+    def state(self) -> str:
+        state = super().state()
+        return "HOMING" if state == "MOVING" and self.homing else state
 
     # -- commands -------------------------------------------------------------------------------
-    def _id(self, args: list[str]) -> str:
-        nargs(args, 0, "ID?")
-        return f"TURNTABLE {MODEL} {FIRMWARE}"
-
-    def _limits(self, args: list[str]) -> str:
-        nargs(args, 0, "LIMITS?")
-        return (f"min_deg={self.min_deg:.3f} max_deg={self.max_deg:.3f} "
-                f"speed_deg_s={math.degrees(self.axis.speed):.3f} settle_s={self.axis.settle_s:.3f}")
-
     def _home(self, args: list[str]) -> str:
         nargs(args, 0, "HOME")
         self._ready()
@@ -72,34 +55,12 @@ class TurntableSim(LineDevice):
         self.axis.start(0.0, stuck=self.take_stuck())
         return ""
 
-    def _move(self, args: list[str]) -> str:
-        nargs(args, 1, "MOVE <deg>")
-        deg = decimal(args[0], "angle")
-        if not self.min_deg <= deg <= self.max_deg:
-            raise Refuse(E_RANGE, f"angle {deg:.3f} deg outside [{self.min_deg:.3f}, {self.max_deg:.3f}] deg")
+    def _move_to(self, deg: float) -> str:
         self._ready()
         if not self.homed:
             raise Refuse(E_NOT_HOMED, "not homed: send HOME first")
         self.axis.start(math.radians(deg), stuck=self.take_stuck())
         return ""
 
-    def _pos(self, args: list[str]) -> str:
-        nargs(args, 0, "POS?")
-        return f"{self._deg():.3f}"
-
-    def _status(self, args: list[str]) -> str:
-        nargs(args, 0, "STATUS?")
-        state = self._state()
-        return (f"state={state} pos_deg={self._deg():.3f} target_deg={math.degrees(float(self.axis.target())):.3f} "
-                f"homed={int(self.homed)} fault={self.fault}")
-
-    def _stop(self, args: list[str]) -> str:
-        nargs(args, 0, "STOP")
-        self.axis.stop()
-        self.homing = False
-        return ""
-
-    def _clear(self, args: list[str]) -> str:
-        nargs(args, 0, "CLEAR")
-        self.fault = "none"
-        return ""
+    def _status_extra(self) -> str:
+        return f"homed={int(self.homed)} "

@@ -118,6 +118,29 @@ def test_lifted_chain_factor_jacobians_match_numerical_derivatives(h):
     assert np.abs(J_lift[:, :2]).max() > 0.5 * abs(h) and np.abs(J_lift[:, 3:]).max() < 1e-9
 
 
+@pytest.mark.parametrize("turntable_rad", [0.0, -1.2, 2.9])
+def test_the_one_chain_factor_with_a_lift_at_height_zero_is_the_chain_without_one(turntable_rad):
+    """One factor serves rigs with and without a lift: given the lift's variable at h = 0 its error
+    and its Jacobians on A, B, M, C are those of the chain without a lift term, and nothing of the
+    lift's frame can move the camera."""
+    motion = ViewMotion(turntable_rad, (0.0, 0.04, -0.02, 0.0, 0.1, -0.05), 0.0)
+    v = _values()
+    v.insert(LIFT, LIFT_TRUE.compose(Pose3.Expmap(np.array([0.001, -0.002, 0.003, 0.01, -0.02, 0.005]))))
+    v.insert(C, GEOM.predict(motion, *(v.atPose3(k) for k in (AXIS, BASE, MOUNT))).compose(
+        Pose3.Expmap(np.array([1e-4, -2e-4, 1e-4, 3e-4, -1e-4, 2e-4]))))
+    unit = gtsam.noiseModel.Unit.Create(6)
+    without = chain_factor(GEOM, motion, C, unit)
+    with_lift = chain_factor(GEOM, motion, C, unit, lift_key=LIFT)
+    assert list(without.keys()) == [AXIS, BASE, MOUNT, C] and list(with_lift.keys()) == [AXIS, BASE, MOUNT, C, LIFT]
+    assert np.abs(with_lift.unwhitenedError(v) - without.unwhitenedError(v)).max() < 1e-12
+    J_without, J_with = _analytic(without, v), _analytic(with_lift, v)
+    for a, b in zip(J_without, J_with[:4]):
+        assert np.abs(a - b).max() < 1e-12
+    assert np.abs(J_with[4]).max() < 1e-12
+    assert GEOM.predict(motion, *(v.atPose3(k) for k in (AXIS, BASE, MOUNT, LIFT))).equals(
+        GEOM.predict(motion, *(v.atPose3(k) for k in (AXIS, BASE, MOUNT))), 0.0)
+
+
 def test_a_lifted_chain_adds_the_lifts_repeatability():
     flat, lifted = ViewMotion(0.0, (0.0,) * 6), ViewMotion(0.0, (0.0,) * 6, 1.0)
     d = GEOM.chain_noise(lifted).covariance() - GEOM.chain_noise(flat).covariance()

@@ -112,6 +112,9 @@ class IpjrConfig:
     samples: int = 4                # potentiometer readings averaged per measurement
 
 
+DeviceConfig = TurntableConfig | StewartConfig | LiftConfig | CameraConfig | IpjrConfig
+
+
 @dataclass(frozen=True)
 class SimConfig:
     """The `[sim]` table: how the simulated bench behaves.  Present only in simulated rigs."""
@@ -264,18 +267,23 @@ class Rig:
     def simulated(self) -> bool:
         return self.sim is not None
 
+    def device_configs(self) -> Iterator[tuple[DeviceKind, DeviceConfig]]:
+        """(kind, record) of every device, in a stable order (the order of `devices()`)."""
+        if self.turntable:
+            yield "turntable", self.turntable
+        if self.stewart:
+            yield "stewart", self.stewart
+        if self.lift:
+            yield "lift", self.lift
+        if self.camera:
+            yield "camera", self.camera
+        for ipjr in self.ipjrs.values():
+            yield "ipjr", ipjr
+
     def devices(self) -> Iterator[tuple[str, DeviceKind, str]]:
         """(name, kind, url) of every device, in a stable order."""
-        if self.turntable:
-            yield self.turntable.name, "turntable", self.turntable.link.url
-        if self.stewart:
-            yield self.stewart.name, "stewart", self.stewart.link.url
-        if self.lift:
-            yield self.lift.name, "lift", self.lift.link.url
-        if self.camera:
-            yield self.camera.name, "camera", self.camera.url
-        for ipjr in self.ipjrs.values():
-            yield ipjr.name, "ipjr", ipjr.link.url
+        for kind, cfg in self.device_configs():
+            yield cfg.name, kind, cfg.url if isinstance(cfg, CameraConfig) else cfg.link.url
 
     def with_urls(self, urls: dict[str, str]) -> Rig:
         """The same rig with some devices reached at other URLs (e.g. a simulator on free ports)."""
