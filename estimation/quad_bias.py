@@ -35,6 +35,7 @@ from estimation.tag_quads import CELLS, MAX_REACH_PX, MIN_REACH_PX, _bilinear, _
 
 __all__ = ["needs_correction", "blur_bias"]
 
+SUPERSAMPLE = 4          # sub-pixels per pixel, each way
 MARGIN_CELLS = 3         # background drawn past the quiet zone
 # Tags are left as fitted where the fit's bias is under ~0.01 px: windows ending CLEAR_SIGMAS of the
 # apparent blur clear of the next edge and reaching CONVERGE_SIGMAS of it across their own (a model
@@ -92,12 +93,12 @@ def _background(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
 def _bases(shape: tuple[int, int], q: np.ndarray, pattern: np.ndarray, pad: int
            ) -> tuple[int, int, np.ndarray] | None:
     """One tag's model before the lens's blur, as four images of its patch (x0, y0, (4, h, w)):
-    black, white (cells and quiet zone), the background past it (each pixel's share), and the
-    pixels within FIT_CELLS of the black square (where the levels and the blur are fitted).  The
-    pattern is a texture of about one texel per pixel, interpolated linearly: a cell edge becomes a
-    ramp symmetric about it, a triangle filter of variance 1/6 px^2 where a pixel's area is a box of
-    1/12, so the edges sit exactly where they should and the blur fitted afterwards takes up the
-    difference."""
+    black, white (cells and quiet zone), the background past it (each pixel's share of its area),
+    and the pixels within FIT_CELLS of the black square (where the levels and the blur are
+    fitted).  The pattern is drawn on SUPERSAMPLE x SUPERSAMPLE sub-pixels from a texture of about
+    one texel per sub-pixel, interpolated linearly (a cell edge a ramp symmetric about it), then
+    averaged over each pixel's area: a pixel's box exactly, where one sample per pixel (a
+    triangle filter) read a sharp lens's edges up to 0.04 px off."""
     H, W = shape
     m = MARGIN_CELLS
     side = CELLS + 2 + 2 * m
@@ -112,7 +113,8 @@ def _bases(shape: tuple[int, int], q: np.ndarray, pattern: np.ndarray, pad: int
     if x1 <= x0 or y1 <= y0:
         return None
     w, h = x1 - x0 + 1, y1 - y0 + 1
-    T = max(1, int(float(np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1).min()) / CELLS))  # texels >= 1 px
+    s = SUPERSAMPLE
+    T = max(1, int(float(np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1).min()) * s / CELLS))  # texels >= 1 sub-pixel
     cells = np.zeros((side, side), np.float32)                      # 0 background, 1 white, 2 black
     cells[m:m + CELLS + 2, m:m + CELLS + 2] = 1.0
     cells[m + 1:m + 1 + CELLS, m + 1:m + 1 + CELLS] = np.where(pattern, 1.0, 2.0)
@@ -122,10 +124,12 @@ def _bases(shape: tuple[int, int], q: np.ndarray, pattern: np.ndarray, pad: int
     near[k0:k1, k0:k1] = 1.0
     # texture coordinates (texel centres at integers) of the black square's corners
     src = ((np.float32([[0, 0], [CELLS, 0], [CELLS, CELLS], [0, CELLS]]) + m + 1) * T - 0.5).astype(np.float32)
-    Ht = cv2.getPerspectiveTransform(src, (q - [x0, y0]).astype(np.float32))
+    # ... and on the sub-pixel grid of the patch (pixel x0's left edge at sub-pixel -0.5)
+    Ht = cv2.getPerspectiveTransform(src, ((q - [x0 - 0.5, y0 - 0.5]) * s - 0.5).astype(np.float32))
     tex = np.stack([idx == 2, idx == 1, near > 0], axis=2).astype(np.float32)
-    warped = cv2.warpPerspective(tex, Ht, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                 borderValue=(0.0, 0.0, 0.0))
+    fine = cv2.warpPerspective(tex, Ht, (w * s, h * s), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                               borderValue=(0.0, 0.0, 0.0))
+    warped = cv2.resize(fine, (w, h), interpolation=cv2.INTER_AREA)          # each pixel's area
     out = np.empty((4, h, w), np.float32)
     out[0], out[1], out[3] = warped[..., 0], warped[..., 1], warped[..., 2]
     out[2] = 1.0 - out[0] - out[1]                                   # the background: the rest
