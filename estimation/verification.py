@@ -30,6 +30,7 @@ from estimation.precision import module_position_covariance, module_sigma
 from estimation.semantics import DeployCheck, closeout_zone
 from lab.core.geometry import Pose3, pose_error
 from lab.core.structures.borg import BorgModel
+from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED
 
 
 @dataclass(frozen=True)
@@ -58,7 +59,7 @@ class Tolerances:
 @dataclass(frozen=True)
 class Verdict:
     module: str
-    verdict: str                         # ok | flagged | uncertain | unverified
+    verdict: str                         # one of lab.core.verdicts.VERDICTS
     reason: str
     estimate: Pose3 | None               # structure_T_module
     deviation_m: float | None            # against the design
@@ -87,12 +88,12 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
     if not usable:
         why = (f"tag {', '.join(map(str, rejected_here))} rejected as displaced" if rejected_here
                else "no tag of it was seen")
-        return Verdict(module, "unverified", why, None, None, None, None, ())
+        return Verdict(module, UNVERIFIED, why, None, None, None, None, ())
     deploy = (not_deployed or {}).get(module)
     if m.kind == "deployable" and deploy is not None:
         est = module_from_tag(model, module, m.tags[0], estimates[m.tags[0]]) if m.tags[0] in usable else None
         dev = pose_error(est, m.structure_T_module) if est is not None else (None, None)
-        return Verdict(module, "flagged", deploy.reason, est, dev[0], dev[1], None, tuple(usable))
+        return Verdict(module, FLAGGED, deploy.reason, est, dev[0], dev[1], None, tuple(usable))
     tag = usable[0]
     est = module_from_tag(model, module, tag, estimates[tag])
     dt, dr = pose_error(est, m.structure_T_module)
@@ -112,11 +113,11 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
     over = dt - k * sp > tol.position_m or dr - k * sr > tol.rotation_rad
     inside = dt + k * sp <= tol.position_m and dr + k * sr <= tol.rotation_rad
     if inside:
-        return Verdict(module, "ok", note.strip(" ()"), est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)
+        return Verdict(module, OK, note.strip(" ()"), est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)
     if not over:
         reason = (f"within its uncertainty of the tolerance: {dt * 1000:.2f} mm (1σ {sp * 1000:.2f} mm), "
                   f"{math.degrees(dr):.2f} deg (1σ {math.degrees(sr):.2f} deg), tolerance {tol.describe()}")
-        return Verdict(module, "uncertain", reason + note, est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)
+        return Verdict(module, UNCERTAIN, reason + note, est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)
     reason = (f"out of tolerance: {dt * 1000:.1f} mm (tolerance {tol.position_m * 1000:.1f} mm), "
               f"{math.degrees(dr):.2f} deg (tolerance {math.degrees(tol.rotation_rad):.2f} deg)")
     if m.kind in ("closeout_strut", "closeout_square"):
@@ -126,4 +127,4 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
         axis = m.structure_T_module.rotation().matrix().T @ axis_structure
         lever = max(float(np.linalg.norm(q - m.structure_T_module.translation())) for q in p)
         reason += "; " + closeout_zone(design_T_est, axis, lever).describe()
-    return Verdict(module, "flagged", reason + note, est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)
+    return Verdict(module, FLAGGED, reason + note, est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)

@@ -36,6 +36,7 @@ from lab.core.geometry import pose_error
 from lab.core.recorder import messages as m
 from lab.core.recorder import topics
 from lab.core.structures.borg import BorgModel, build_borg
+from lab.core.verdicts import FLAGGED, UNCERTAIN, UNVERIFIED, tally
 from procedures.borg_measure import ModuleResult
 from procedures.runner import RunContext, StepSpec, StopRun
 from procedures.setup import Bench
@@ -278,7 +279,7 @@ class BorgProcedure:
             result.attempts = attempt
             self.results[module.name] = result
             self._log_verdict(run, spec.index, result)
-            if result.verdict != "flagged" or self.on_flag == "continue":
+            if result.verdict != FLAGGED or self.on_flag == "continue":
                 return
             if self.on_flag == "stop":
                 raise StopRun(f"module {module.name} flagged: {result.reason}")
@@ -394,7 +395,7 @@ class BorgProcedure:
             result = self._measure_round(spec, run, name, attempt, rnd, plan.views, len(taken))
             taken += plan.views
             budget = self.precision.max_views - len(taken)
-            if result.verdict != "uncertain" or budget <= 0:
+            if result.verdict != UNCERTAIN or budget <= 0:
                 break
             placed = self.measure.placed
             plan = self.planner.more_views(name, placed, taken, self.measure.verdict_tag_covariance(name),
@@ -409,7 +410,7 @@ class BorgProcedure:
                                  f"{_num(result.sigma_position_m, 1000, 2)} mm); {len(plan.views)} more view(s)")
         result.views = len(taken)
         result.predicted_sigma_m = self.surveys[name].predicted_sigma_m
-        if result.verdict == "unverified" and name in self.unobservable:
+        if result.verdict == UNVERIFIED and name in self.unobservable:
             tags = ", ".join(map(str, self.unobservable[name]))
             result.reason = f"the rig cannot observe it (no candidate view sees tag {tags}); {result.reason}".rstrip("; ")
         if self.bench.simulated:
@@ -686,7 +687,7 @@ class BorgProcedure:
             for name in state.get("placed", []):
                 self.bench.sim.world.borg.place(name)
             for name, r in self.results.items():
-                if r.attempts > 1 and r.verdict != "flagged":
+                if r.attempts > 1 and r.verdict != FLAGGED:
                     self._redeploy_in_world(name)
         self.homed = False   # a new session: home again before moving
 
@@ -804,10 +805,7 @@ def format_table(summary: dict[str, Any]) -> str:
     """The verification table printed at the end of `lab run borg` (and by `lab runs show`)."""
     lines = [TABLE_HEADER]
     lines += [format_row(mod) for mod in summary.get("modules", [])]
-    counts = {v: sum(1 for mm in summary.get("modules", []) if mm["verdict"] == v)
-              for v in ("ok", "flagged", "uncertain", "unverified")}
-    lines.append(f"{counts['ok']} ok, {counts['flagged']} flagged, {counts['uncertain']} uncertain, "
-                 f"{counts['unverified']} unverified; "
-                 f"rejected tags: {summary.get('rejected_tags', [])}")
+    counts = tally(mm["verdict"] for mm in summary.get("modules", []))
+    lines.append(", ".join(f"{n} {v}" for v, n in counts.items()) + f"; rejected tags: {summary.get('rejected_tags', [])}")
     lines.append(TABLE_LEGEND)
     return "\n".join(lines)

@@ -58,13 +58,13 @@ from google.protobuf import timestamp_pb2  # noqa: F401  (registers google/proto
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from lab.core.geometry import Pose3, from_quaternion, to_quaternion
+from lab.core.verdicts import VERDICTS
 
 PROTO_FILE = "lab/messages.proto"
 PACKAGE = "lab"
 
 RUN_RESULTS = ("completed", "aborted", "failed")
 STEP_PHASES = ("start", "end", "error")
-VERDICTS = ("ok", "flagged", "uncertain", "unverified")
 DIRECTIONS = ("tx", "rx", "event")
 
 _T = descriptor_pb2.FieldDescriptorProto
