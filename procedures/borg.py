@@ -36,8 +36,9 @@ from lab.core.geometry import pose_error
 from lab.core.recorder import messages as m
 from lab.core.recorder import topics
 from lab.core.structures.borg import BorgModel, build_borg
-from lab.core.verdicts import FLAGGED, UNCERTAIN, UNVERIFIED, tally
+from lab.core.verdicts import FLAGGED, UNCERTAIN, UNVERIFIED
 from procedures.borg_measure import ModuleResult
+from procedures.console import BORG_HEADER, borg_row, console_of, more_views_line
 from procedures.runner import RunContext, StepSpec, StopRun
 from procedures.setup import Bench
 from procedures.survey import CameraModel, PrecisionTarget, SurveyPlan, SurveyPlanner, View
@@ -319,7 +320,6 @@ class BorgProcedure:
         The solution, with its covariance, is the prior the run refines; a quantity the survey could
         not pin down keeps a wide covariance, which is honest, and is reported as a warning."""
         from procedures.borg_measure import Measurement
-        from procedures.console import console_of
         from procedures.rig_survey import capture, views_to_json
 
         rec = run.recorder
@@ -404,10 +404,7 @@ class BorgProcedure:
             if not plan.views:
                 break
             rnd += 1
-            from procedures.console import console_of
-
-            console_of(run).line(f"  {name}: uncertain ({_num(result.deviation_m, 1000, 2)} mm, 1σ "
-                                 f"{_num(result.sigma_position_m, 1000, 2)} mm); {len(plan.views)} more view(s)")
+            console_of(run).line(more_views_line(name, result.deviation_m, result.sigma_position_m, len(plan.views)))
         result.views = len(taken)
         result.predicted_sigma_m = self.surveys[name].predicted_sigma_m
         if result.verdict == UNVERIFIED and name in self.unobservable:
@@ -602,15 +599,13 @@ class BorgProcedure:
         run.recorder.log_text("info", f"module {r.name}: {r.verdict}{' - ' + r.reason if r.reason else ''}")
         # the console: the verdict row as soon as it is decided (the header before the first),
         # then what changed with it: tags rejected in this step, a re-measure
-        from procedures.console import console_of
-
         console = console_of(run)
         if not self._row_header_shown:
-            console.line(TABLE_HEADER)
+            console.line(BORG_HEADER)
             self._row_header_shown = True
         if r.attempts > 1:
             console.warn(f"module {r.name} re-deployed by the operator; measured again (attempt {r.attempts})")
-        console.line(format_row(self._row(r)))
+        console.line(borg_row(self._row(r)))
         new = sorted(self.measure.rejected_tags - self._rejected_reported)
         if new:
             console.warn(f"tag{'s' if len(new) > 1 else ''} {', '.join(map(str, new))} rejected as displaced "
@@ -767,28 +762,6 @@ def _corner_errors_sq(world: Any, detections: list, camera: tuple[np.ndarray, np
     return out
 
 
-TABLE_HEADER = (f"{'module':<7} {'verdict':<10} {'dev mm':>7} {'dev deg':>7} {'tol mm/deg':>10} {'1σ mm':>6} "
-                f"{'err mm':>7} {'err deg':>7}  reason")
-TABLE_LEGEND = ("dev: measured distance from the design, which the verdict judges (ok within tol - 2σ, flagged beyond "
-                "tol + 2σ or not fully deployed, uncertain in between once the step's views are spent); tol: tolerance; 1σ: estimated position uncertainty; err: estimate vs the simulated "
-                "truth (blank on hardware)")
-
-
-def _num(value: float | None, scale: float, digits: int) -> str:
-    return "" if value is None else f"{value * scale:.{digits}f}"
-
-
-def format_row(mod: dict[str, Any]) -> str:
-    """One module's row: deviation from the design (mm, deg), tolerance, 1 sigma, truth error."""
-    tol = ""
-    if mod.get("tolerance_m") is not None and mod.get("tolerance_rad") is not None:
-        tol = f"{mod['tolerance_m'] * 1000:g}/{np.degrees(mod['tolerance_rad']):g}"
-    return (f"{mod['name']:<7} {mod['verdict']:<10} {_num(mod.get('deviation_m'), 1000, 2):>7} "
-            f"{_num(mod.get('deviation_rad'), 180 / np.pi, 3):>7} {tol:>10} "
-            f"{_num(mod.get('sigma_position_m'), 1000, 2):>6} {_num(mod.get('position_error_m'), 1000, 2):>7} "
-            f"{_num(mod.get('rotation_error_rad'), 180 / np.pi, 3):>7}  {mod.get('reason', '')}").rstrip()
-
-
 def _rig_survey_line(sol: Any) -> str:
     """One line for the operator: what the rig survey found and how well."""
     cal = sol.calibration
@@ -799,13 +772,3 @@ def _rig_survey_line(sol: Any) -> str:
     return (f"rig calibration from {cal.views} views (corner rms {cal.rms_px:.2f} px): 1 sigma mount "
             f"{worst('platform_T_camera')}, Stewart base {worst('world_T_base')}, focal "
             f"{100 * sd['K']['fx_px'] / cal.K[0, 0]:.3f} %" + ("" if sol.ok else f"; {len(sol.problems)} warning(s) above"))
-
-
-def format_table(summary: dict[str, Any]) -> str:
-    """The verification table printed at the end of `lab run borg` (and by `lab runs show`)."""
-    lines = [TABLE_HEADER]
-    lines += [format_row(mod) for mod in summary.get("modules", [])]
-    counts = tally(mm["verdict"] for mm in summary.get("modules", []))
-    lines.append(", ".join(f"{n} {v}" for v, n in counts.items()) + f"; rejected tags: {summary.get('rejected_tags', [])}")
-    lines.append(TABLE_LEGEND)
-    return "\n".join(lines)
