@@ -110,9 +110,10 @@ def _isatty(stream: TextIO) -> bool:
 
 BORG_HEADER = (f"{'module':<7} {'verdict':<10} {'dev mm':>7} {'dev deg':>7} {'tol mm/deg':>10} {'1σ mm':>6} "
                f"{'err mm':>7} {'err deg':>7}  reason")
-BORG_LEGEND = ("dev: measured distance from the design, which the verdict judges (ok within tol - 2σ, flagged beyond "
-               "tol + 2σ or not fully deployed, uncertain in between once the step's views are spent); tol: tolerance; "
-               "1σ: estimated position uncertainty; err: estimate vs the simulated truth (blank on hardware)")
+BORG_LEGEND = ("dev: measured distance from the design, which the verdict judges (ok within tol - 2σ, flagged "
+               "beyond tol + 2σ or not fully deployed, uncertain in between once the step's views are spent); "
+               "tol: tolerance; 1σ: estimated position uncertainty; err: estimate vs the simulated truth "
+               "(blank on hardware)")
 TRUSS_LEGEND = ("error: the built node's distance from its design position; estimate error: the estimator's "
                 "node position vs the built one (both against the simulated truth, blank on hardware)")
 _DEG = 180 / math.pi
@@ -135,7 +136,8 @@ def borg_row(mod: dict[str, Any]) -> str:
 
 def more_views_line(name: str, deviation_m: float | None, sigma_m: float | None, views: int) -> str:
     """An uncertain module about to be measured again."""
-    return f"  {name}: uncertain ({_num(deviation_m, 1000, 2)} mm, 1σ {_num(sigma_m, 1000, 2)} mm); {views} more view(s)"
+    return (f"  {name}: uncertain ({_num(deviation_m, 1000, 2)} mm, 1σ {_num(sigma_m, 1000, 2)} mm); "
+            f"{views} more view(s)")
 
 
 def borg_table(summary: dict[str, Any]) -> str:
