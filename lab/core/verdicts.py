@@ -61,7 +61,7 @@ class Verdict:
     deviation_m: float | None            # against the design
     deviation_rad: float | None
     sigma_m: float | None                # 1-sigma position uncertainty of the module (worst direction)
-    tags_used: tuple[int, ...]           # the tag the estimate is read from
+    tags_used: tuple[int, ...]           # its usable tags; the estimate is read from the first
     sigma_rad: float | None = None       # 1-sigma rotation uncertainty
     position_covariance: np.ndarray | None = None   # 3x3, structure frame, of the module's position
     tolerance_m: float | None = None     # the tolerance it was judged by
@@ -118,7 +118,7 @@ class Verdict:
 
 
 _NOT_CHECKPOINTED = ("tolerance_m", "tolerance_rad")
-# a checkpoint's module result: its keys, and what a missing one means (as when it was written)
+# a checkpoint's module result: its keys, and what one missing (a checkpoint older than the key) reads as
 _CHECKPOINT_DEFAULTS: dict[str, Any] = {
     "name": None, "verdict": UNVERIFIED, "reason": "", "position_error_m": None, "rotation_error_rad": None,
     "deviation_m": None, "deviation_rad": None, "sigma_position_m": None, "tags_seen": [], "attempts": 1,
