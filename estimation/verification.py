@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -30,6 +30,7 @@ from estimation.precision import module_position_covariance, module_sigma
 from estimation.semantics import DeployCheck, closeout_zone
 from lab.core.geometry import Pose3, pose_error
 from lab.core.structures.borg import BorgModel
+from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED, Verdict
 
 
 @dataclass(frozen=True)
@@ -55,20 +56,6 @@ class Tolerances:
         return getattr(self, kind)
 
 
-@dataclass(frozen=True)
-class Verdict:
-    module: str
-    verdict: str                         # ok | flagged | uncertain | unverified
-    reason: str
-    estimate: Pose3 | None               # structure_T_module
-    deviation_m: float | None            # against the design
-    deviation_rad: float | None
-    sigma_m: float | None                # 1-sigma position uncertainty of the module (worst direction)
-    tags_used: tuple[int, ...]
-    sigma_rad: float | None = None       # 1-sigma rotation uncertainty
-    position_covariance: np.ndarray | None = None   # 3x3, structure frame, of the module's position
-
-
 def module_from_tag(model: BorgModel, module: str, tag: int, structure_T_tag: Pose3) -> Pose3:
     m = model.module_by_name[module]
     tag_T_module = model.tags[tag].structure_T_tag.inverse().compose(m.structure_T_module)
@@ -79,20 +66,24 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
                   covariances: Mapping[int, np.ndarray] | None = None, rejected: set[int] | frozenset[int] = frozenset(),
                   not_deployed: Mapping[str, DeployCheck] | None = None,
                   tolerances: Tolerances | None = None) -> Verdict:
+    """The module's verdict record (lab/core/verdicts.py), with the tolerance it was judged by and
+    the tags of it that were measured."""
     m = model.module_by_name[module]
     tol = (tolerances or Tolerances()).of(m.kind)
+    judged: dict[str, Any] = {"tolerance_m": tol.position_m, "tolerance_rad": tol.rotation_rad,
+              "tags_seen": tuple(t for t in m.tags if t in estimates)}
     covs = covariances or {}
     usable = [t for t in m.tags if t in estimates and t not in rejected]
     rejected_here = [t for t in m.tags if t in rejected]
     if not usable:
         why = (f"tag {', '.join(map(str, rejected_here))} rejected as displaced" if rejected_here
                else "no tag of it was seen")
-        return Verdict(module, "unverified", why, None, None, None, None, ())
+        return Verdict(module, UNVERIFIED, why, None, None, None, None, (), **judged)
     deploy = (not_deployed or {}).get(module)
     if m.kind == "deployable" and deploy is not None:
         est = module_from_tag(model, module, m.tags[0], estimates[m.tags[0]]) if m.tags[0] in usable else None
         dev = pose_error(est, m.structure_T_module) if est is not None else (None, None)
-        return Verdict(module, "flagged", deploy.reason, est, dev[0], dev[1], None, tuple(usable))
+        return Verdict(module, FLAGGED, deploy.reason, est, dev[0], dev[1], None, tuple(usable), **judged)
     tag = usable[0]
     est = module_from_tag(model, module, tag, estimates[tag])
     dt, dr = pose_error(est, m.structure_T_module)
@@ -112,11 +103,11 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
     over = dt - k * sp > tol.position_m or dr - k * sr > tol.rotation_rad
     inside = dt + k * sp <= tol.position_m and dr + k * sr <= tol.rotation_rad
     if inside:
-        return Verdict(module, "ok", note.strip(" ()"), est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)
+        return Verdict(module, OK, note.strip(" ()"), est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov, **judged)
     if not over:
         reason = (f"within its uncertainty of the tolerance: {dt * 1000:.2f} mm (1σ {sp * 1000:.2f} mm), "
                   f"{math.degrees(dr):.2f} deg (1σ {math.degrees(sr):.2f} deg), tolerance {tol.describe()}")
-        return Verdict(module, "uncertain", reason + note, est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)
+        return Verdict(module, UNCERTAIN, reason + note, est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov, **judged)
     reason = (f"out of tolerance: {dt * 1000:.1f} mm (tolerance {tol.position_m * 1000:.1f} mm), "
               f"{math.degrees(dr):.2f} deg (tolerance {math.degrees(tol.rotation_rad):.2f} deg)")
     if m.kind in ("closeout_strut", "closeout_square"):
@@ -126,4 +117,4 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
         axis = m.structure_T_module.rotation().matrix().T @ axis_structure
         lever = max(float(np.linalg.norm(q - m.structure_T_module.translation())) for q in p)
         reason += "; " + closeout_zone(design_T_est, axis, lever).describe()
-    return Verdict(module, "flagged", reason + note, est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov)
+    return Verdict(module, FLAGGED, reason + note, est, dt, dr, sigma, tuple(usable), sigma_r, pos_cov, **judged)

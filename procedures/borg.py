@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import replace
 from functools import cached_property
 from typing import Any
 
@@ -36,7 +36,8 @@ from lab.core.geometry import pose_error
 from lab.core.recorder import messages as m
 from lab.core.recorder import topics
 from lab.core.structures.borg import BorgModel, build_borg
-from procedures.borg_measure import ModuleResult
+from lab.core.verdicts import FLAGGED, UNCERTAIN, UNVERIFIED, Bound, TruthError, Verdict
+from procedures.console import BORG_HEADER, borg_row, console_of, more_views_line
 from procedures.runner import RunContext, StepSpec, StopRun
 from procedures.setup import Bench
 from procedures.survey import CameraModel, PrecisionTarget, SurveyPlan, SurveyPlanner, View
@@ -162,7 +163,7 @@ class BorgProcedure:
         self.measure = Measurement(self.model, self.intrinsics, estimator_config, rig=self._rig_model(),
                                    calibration=self.rig_calibration)
         self.measure.tolerances = self.tolerances
-        self.results: dict[str, ModuleResult] = {}
+        self.results: dict[str, Verdict] = {}
         self.views_done: list[dict[str, Any]] = []     # every view taken, for checkpoints / replay
         self._true_cameras: list[Any] = []             # simulation: each graph view's true camera, for the bound
         self._corner_sq: list[float] = []              # simulation: squared corner errors against the truth
@@ -275,10 +276,9 @@ class BorgProcedure:
         while True:
             attempt += 1
             result = self._survey_and_verify(spec, run, module.name, attempt)
-            result.attempts = attempt
             self.results[module.name] = result
             self._log_verdict(run, spec.index, result)
-            if result.verdict != "flagged" or self.on_flag == "continue":
+            if result.verdict != FLAGGED or self.on_flag == "continue":
                 return
             if self.on_flag == "stop":
                 raise StopRun(f"module {module.name} flagged: {result.reason}")
@@ -318,7 +318,6 @@ class BorgProcedure:
         The solution, with its covariance, is the prior the run refines; a quantity the survey could
         not pin down keeps a wide covariance, which is honest, and is reported as a warning."""
         from procedures.borg_measure import Measurement
-        from procedures.console import console_of
         from procedures.rig_survey import capture, views_to_json
 
         rec = run.recorder
@@ -384,9 +383,10 @@ class BorgProcedure:
             borg.set_deployed_height(name, None)
         borg.set_module_offset(name)
 
-    def _survey_and_verify(self, spec: StepSpec, run: RunContext, name: str, attempt: int) -> ModuleResult:
+    def _survey_and_verify(self, spec: StepSpec, run: RunContext, name: str, attempt: int) -> Verdict:
         """The planned views, then -- while the verdict is `uncertain` and the step's view budget
-        allows -- further rounds of views planned from the module's covariance in the graph."""
+        allows -- further rounds of views planned from the module's covariance in the graph.  The
+        last round's verdict, with what only the procedure knows, is the module's record."""
         plan = self.surveys[name]
         taken: list[View] = []
         rnd = 0
@@ -394,7 +394,7 @@ class BorgProcedure:
             result = self._measure_round(spec, run, name, attempt, rnd, plan.views, len(taken))
             taken += plan.views
             budget = self.precision.max_views - len(taken)
-            if result.verdict != "uncertain" or budget <= 0:
+            if result.verdict != UNCERTAIN or budget <= 0:
                 break
             placed = self.measure.placed
             plan = self.planner.more_views(name, placed, taken, self.measure.verdict_tag_covariance(name),
@@ -403,22 +403,20 @@ class BorgProcedure:
             if not plan.views:
                 break
             rnd += 1
-            from procedures.console import console_of
-
-            console_of(run).line(f"  {name}: uncertain ({_num(result.deviation_m, 1000, 2)} mm, 1σ "
-                                 f"{_num(result.sigma_position_m, 1000, 2)} mm); {len(plan.views)} more view(s)")
-        result.views = len(taken)
-        result.predicted_sigma_m = self.surveys[name].predicted_sigma_m
-        if result.verdict == "unverified" and name in self.unobservable:
+            console_of(run).line(more_views_line(name, result.deviation_m, result.sigma_m, len(plan.views)))
+        reason = result.reason
+        if result.verdict == UNVERIFIED and name in self.unobservable:
             tags = ", ".join(map(str, self.unobservable[name]))
-            result.reason = f"the rig cannot observe it (no candidate view sees tag {tags}); {result.reason}".rstrip("; ")
+            reason = f"the rig cannot observe it (no candidate view sees tag {tags}); {reason}".rstrip("; ")
+        result = replace(result, reason=reason, views=len(taken), attempts=attempt,
+                         predicted_sigma_m=self.surveys[name].predicted_sigma_m)
         if self.bench.simulated:
-            self._truth_errors(result)
-            self._bound(result, name)   # of the graph the verdict read, before the module's relations join
+            # the bound of the graph the verdict read, before the module's relations join
+            result = replace(result, truth=self._truth_error(result), bound=self._bound(name))
         self.measure.finish(name)
         return result
 
-    def _bound(self, r: ModuleResult, name: str) -> None:
+    def _bound(self, name: str) -> Bound | None:
         """Simulation: the best 1-sigma any estimator could give this module from the same views --
         the graph's marginal linearised at the true poses with the detector's true corner noise
         (measured against the truth over the run so far)."""
@@ -426,13 +424,12 @@ class BorgProcedure:
         tags = self.measure.verdict_tags(name)
         if (not tags or len(self._true_cameras) != slam.n_views or any(c is None for c in self._true_cameras)
                 or not self._corner_sq or slam.camera is None):
-            return
+            return None
         import gtsam
 
         from estimation.precision import bound_covariances, module_sigma
         from estimation.rig_model import AXIS, BASE, INTRINSICS, LIFT, MOUNT, cal3_s2
         from estimation.sf_graphslam import GENERATION
-        from dataclasses import replace
 
         world = self.bench.sim.world
         sigma_px = float(np.sqrt(np.mean(self._corner_sq)))
@@ -474,10 +471,10 @@ class BorgProcedure:
         try:
             cov = bound_covariances(graph, truth, [slam.key(tag)])[slam.key(tag)]
         except RuntimeError:
-            return
+            return None
         m = self.model.module_by_name[name]
         ms = module_sigma(self.model.tags[tag].structure_T_tag.inverse().compose(m.structure_T_module), cov)
-        r.bound_position_m, r.bound_rotation_rad, r.bound_position_rms_m = ms.position_m, ms.rotation_rad, ms.position_rms_m
+        return Bound(ms.position_m, ms.rotation_rad, ms.position_rms_m)
 
     def _take_truth(self, record: dict[str, Any]) -> None:
         from lab.core.geometry import Pose3
@@ -489,20 +486,18 @@ class BorgProcedure:
         self._true_cameras.append(Pose3(np.asarray(truth["structure_T_camera"])))
         self._corner_sq += truth["corner_sq_px2"]
 
-    def _round_target(self, r: ModuleResult) -> PrecisionTarget:
+    def _round_target(self, r: Verdict) -> PrecisionTarget:
         """For an uncertain module: the sigma at which its deviation would clear the tolerance's
         band on one side or the other, if the estimate stays where it is (never looser than the plan's)."""
-        tol = self.tolerances.of(self.model.module_by_name[r.name].kind)
+        tol = self.tolerances.of(self.model.module_by_name[r.module].kind)
         need = self.precision.sigma_m
         if r.deviation_m is not None:
             gap = abs(r.deviation_m - tol.position_m)
             need = min(need, max(gap / (tol.band_sigmas + 0.5), 1e-5))
-        from dataclasses import replace
-
         return replace(self.precision, sigma_m=need)
 
     def _measure_round(self, spec: StepSpec, run: RunContext, name: str, attempt: int, rnd: int,
-                       views_planned: list[View], first_k: int) -> ModuleResult:
+                       views_planned: list[View], first_k: int) -> Verdict:
         rec = run.recorder
         views = []
         for j, view in enumerate(views_planned):
@@ -591,58 +586,38 @@ class BorgProcedure:
             covs = {tid: c for tid, (_, c) in estimates.items()}
             run.recorder.log_tag_estimates(poses, "structure", covariances=covs)
 
-    def _log_verdict(self, run: RunContext, index: int, r: ModuleResult) -> None:
-        run.recorder.log_record(topics.VERDICTS, m.module_verdict(
-            r.name, r.verdict, r.reason,
-            position_error_m=r.position_error_m if r.position_error_m is not None else float("nan"),
-            rotation_error_rad=r.rotation_error_rad if r.rotation_error_rad is not None else float("nan"),
-            step_index=index, tag_ids=list(self.model.module_by_name[r.name].tags),
-            rejected_tag_ids=sorted(self.measure.rejected_tags)))
-        run.recorder.log_text("info", f"module {r.name}: {r.verdict}{' - ' + r.reason if r.reason else ''}")
+    def _log_verdict(self, run: RunContext, index: int, r: Verdict) -> None:
+        run.recorder.log_record(topics.VERDICTS, m.verdict_message(
+            r, index, self.model.module_by_name[r.module].tags, sorted(self.measure.rejected_tags)))
+        run.recorder.log_text("info", f"module {r.module}: {r.verdict}{' - ' + r.reason if r.reason else ''}")
         # the console: the verdict row as soon as it is decided (the header before the first),
         # then what changed with it: tags rejected in this step, a re-measure
-        from procedures.console import console_of
-
         console = console_of(run)
         if not self._row_header_shown:
-            console.line(TABLE_HEADER)
+            console.line(BORG_HEADER)
             self._row_header_shown = True
         if r.attempts > 1:
-            console.warn(f"module {r.name} re-deployed by the operator; measured again (attempt {r.attempts})")
-        console.line(format_row(self._row(r)))
+            console.warn(f"module {r.module} re-deployed by the operator; measured again (attempt {r.attempts})")
+        console.line(borg_row(r.summary_row()))
         new = sorted(self.measure.rejected_tags - self._rejected_reported)
         if new:
             console.warn(f"tag{'s' if len(new) > 1 else ''} {', '.join(map(str, new))} rejected as displaced "
                          f"(does not fit the design while the rest of the structure does)")
         self._rejected_reported = set(self.measure.rejected_tags)
 
-    def _row(self, r: ModuleResult) -> dict[str, Any]:
-        """A module's line of the summary (and of the table)."""
-        tol = self.measure.tolerances.of(self.model.module_by_name[r.name].kind)
-        return {"name": r.name, "verdict": r.verdict, "reason": r.reason,
-                "position_error_m": r.position_error_m, "rotation_error_rad": r.rotation_error_rad,
-                "deviation_m": r.deviation_m, "deviation_rad": r.deviation_rad,
-                "sigma_position_m": r.sigma_position_m, "tolerance_m": tol.position_m,
-                "tolerance_rad": tol.rotation_rad, "tags_seen": r.tags_seen, "attempts": r.attempts,
-                "sigma_rotation_rad": r.sigma_rotation_rad, "views": r.views, "predicted_sigma_m": r.predicted_sigma_m,
-                "bound_position_m": r.bound_position_m, "bound_rotation_rad": r.bound_rotation_rad,
-                "bound_position_rms_m": r.bound_position_rms_m, "position_covariance_m2": r.position_covariance_m2,
-                "position_error_vector_m": r.position_error_vector_m, "position_nees": r.position_nees}
-
-    def _truth_errors(self, r: ModuleResult) -> None:
-        est = self.measure.module_estimate(r.name)
-        if est is None:
-            return
-        truth = self.bench.sim.world.borg.structure_T_module(r.name)
-        r.position_error_m, r.rotation_error_rad = pose_error(est, truth)
-        e = est.translation() - truth.translation()
-        r.position_error_vector_m = [float(x) for x in e]
-        if r.position_covariance_m2 is not None:
-            r.position_nees = float(e @ np.linalg.solve(np.asarray(r.position_covariance_m2), e))
+    def _truth_error(self, r: Verdict) -> TruthError | None:
+        """Simulation: the module's estimate against where the world really put it."""
+        if r.estimate is None:
+            return None
+        truth = self.bench.sim.world.borg.structure_T_module(r.module)
+        position_m, rotation_rad = pose_error(r.estimate, truth)
+        e = r.estimate.translation() - truth.translation()
+        nees = None if r.position_covariance is None else float(e @ np.linalg.solve(r.position_covariance, e))
+        return TruthError(position_m, rotation_rad, tuple(float(x) for x in e), nees)
 
     # ---- checkpoints -------------------------------------------------------------------------
     def checkpoint(self) -> dict[str, Any]:
-        return {"views": self.views_done, "results": {k: v.to_json() for k, v in self.results.items()},
+        return {"views": self.views_done, "results": {k: v.checkpoint_json() for k, v in self.results.items()},
                 "placed": list(self.bench.sim.world.borg.placed) if self.bench.simulated else [],
                 "homed": self.homed,
                 # the survey's inputs, not its result: a resumed run solves them again and gets the
@@ -681,23 +656,27 @@ class BorgProcedure:
                 # re-run from its start, so every replayed step was finished)
                 self.measure.verdict(views[0]["module"])
                 self.measure.finish(views[0]["module"])
-        self.results = {k: ModuleResult(**v) for k, v in state.get("results", {}).items()}
+        self.results = {k: self._restored_result(k, v) for k, v in state.get("results", {}).items()}
         if self.bench.simulated:
             for name in state.get("placed", []):
                 self.bench.sim.world.borg.place(name)
             for name, r in self.results.items():
-                if r.attempts > 1 and r.verdict != "flagged":
+                if r.attempts > 1 and r.verdict != FLAGGED:
                     self._redeploy_in_world(name)
         self.homed = False   # a new session: home again before moving
 
+    def _restored_result(self, name: str, d: dict[str, Any]) -> Verdict:
+        """A completed step's verdict from the checkpoint, with this run's tolerance for its type (a
+        module outside the plan has none: the summary lists only planned modules)."""
+        mod = self.model.module_by_name.get(name)
+        if mod is None:
+            return Verdict.from_checkpoint(d, None, None)
+        tol = self.measure.tolerances.of(mod.kind)
+        return Verdict.from_checkpoint(d, tol.position_m, tol.rotation_rad)
+
     # ---- the end -------------------------------------------------------------------------------
     def summary(self, result: str, reason: str) -> dict[str, Any]:
-        modules = []
-        for mod in self.modules:
-            r = self.results.get(mod.name)
-            if r is None:
-                continue
-            modules.append(self._row(r))
+        modules = [self.results[mod.name].summary_row() for mod in self.modules if mod.name in self.results]
         return {"result": result, "reason": reason, "structure": f"borg:{self.model.n}", "on_flag": self.on_flag,
                 "calibration": ("none (rig file trusted)" if self.uncalibrated else
                                 "survey" if self.rig_survey else "file" if self.rig_calibration is not None
@@ -766,28 +745,6 @@ def _corner_errors_sq(world: Any, detections: list, camera: tuple[np.ndarray, np
     return out
 
 
-TABLE_HEADER = (f"{'module':<7} {'verdict':<10} {'dev mm':>7} {'dev deg':>7} {'tol mm/deg':>10} {'1σ mm':>6} "
-                f"{'err mm':>7} {'err deg':>7}  reason")
-TABLE_LEGEND = ("dev: measured distance from the design, which the verdict judges (ok within tol - 2σ, flagged beyond "
-                "tol + 2σ or not fully deployed, uncertain in between once the step's views are spent); tol: tolerance; 1σ: estimated position uncertainty; err: estimate vs the simulated "
-                "truth (blank on hardware)")
-
-
-def _num(value: float | None, scale: float, digits: int) -> str:
-    return "" if value is None else f"{value * scale:.{digits}f}"
-
-
-def format_row(mod: dict[str, Any]) -> str:
-    """One module's row: deviation from the design (mm, deg), tolerance, 1 sigma, truth error."""
-    tol = ""
-    if mod.get("tolerance_m") is not None and mod.get("tolerance_rad") is not None:
-        tol = f"{mod['tolerance_m'] * 1000:g}/{np.degrees(mod['tolerance_rad']):g}"
-    return (f"{mod['name']:<7} {mod['verdict']:<10} {_num(mod.get('deviation_m'), 1000, 2):>7} "
-            f"{_num(mod.get('deviation_rad'), 180 / np.pi, 3):>7} {tol:>10} "
-            f"{_num(mod.get('sigma_position_m'), 1000, 2):>6} {_num(mod.get('position_error_m'), 1000, 2):>7} "
-            f"{_num(mod.get('rotation_error_rad'), 180 / np.pi, 3):>7}  {mod.get('reason', '')}").rstrip()
-
-
 def _rig_survey_line(sol: Any) -> str:
     """One line for the operator: what the rig survey found and how well."""
     cal = sol.calibration
@@ -798,16 +755,3 @@ def _rig_survey_line(sol: Any) -> str:
     return (f"rig calibration from {cal.views} views (corner rms {cal.rms_px:.2f} px): 1 sigma mount "
             f"{worst('platform_T_camera')}, Stewart base {worst('world_T_base')}, focal "
             f"{100 * sd['K']['fx_px'] / cal.K[0, 0]:.3f} %" + ("" if sol.ok else f"; {len(sol.problems)} warning(s) above"))
-
-
-def format_table(summary: dict[str, Any]) -> str:
-    """The verification table printed at the end of `lab run borg` (and by `lab runs show`)."""
-    lines = [TABLE_HEADER]
-    lines += [format_row(mod) for mod in summary.get("modules", [])]
-    counts = {v: sum(1 for mm in summary.get("modules", []) if mm["verdict"] == v)
-              for v in ("ok", "flagged", "uncertain", "unverified")}
-    lines.append(f"{counts['ok']} ok, {counts['flagged']} flagged, {counts['uncertain']} uncertain, "
-                 f"{counts['unverified']} unverified; "
-                 f"rejected tags: {summary.get('rejected_tags', [])}")
-    lines.append(TABLE_LEGEND)
-    return "\n".join(lines)

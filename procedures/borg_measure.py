@@ -5,7 +5,6 @@ resumed run replays the same inputs in the same order and reaches the same estim
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -15,36 +14,11 @@ from estimation.rig_model import RigGeometry, ViewMotion
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
 from lab.core.rig_calibration import RigCalibration
 from estimation.tag_elimination import eliminate_tags
-from estimation.verification import Tolerances, Verdict, verify_module
+from estimation.verification import Tolerances, verify_module
 from lab.core.geometry import Pose3, from_xyzquat, to_xyzquat
 from lab.core.recorder import messages as m
 from lab.core.structures.borg import BorgModel
-
-
-@dataclass
-class ModuleResult:
-    name: str
-    verdict: str = "unverified"
-    reason: str = ""
-    position_error_m: float | None = None     # estimate vs simulated truth (hardware: None)
-    rotation_error_rad: float | None = None
-    deviation_m: float | None = None          # estimate vs design
-    deviation_rad: float | None = None
-    sigma_position_m: float | None = None     # estimated 1-sigma position uncertainty
-    tags_seen: list[int] = field(default_factory=list)
-    attempts: int = 1
-    sigma_rotation_rad: float | None = None
-    views: int = 0                            # views taken for this verdict (all rounds)
-    predicted_sigma_m: float | None = None    # what the plan expected of its views
-    bound_position_m: float | None = None     # simulation: the Cramér-Rao bound of the same views
-    bound_rotation_rad: float | None = None
-    bound_position_rms_m: float | None = None  # sqrt(trace): the expected RMS of the 3-D position error
-    position_covariance_m2: list[list[float]] | None = None   # 3x3, structure frame, as the verdict read it
-    position_error_vector_m: list[float] | None = None        # estimate - truth, structure frame (simulation)
-    position_nees: float | None = None        # simulation: error' covariance^-1 error (dimension 3)
-
-    def to_json(self) -> dict[str, Any]:
-        return {k: v for k, v in self.__dict__.items()}
+from lab.core.verdicts import Verdict
 
 
 class Measurement:
@@ -155,17 +129,16 @@ class Measurement:
         self.rejected_tags.update(result.rejected)
 
     # ---- results -----------------------------------------------------------------------------------
-    def verdict(self, module: str):
+    def verdict(self, module: str) -> Verdict:
+        """The module's verdict from its own step's measurement (the procedure adds its views,
+        attempts and, in simulation, the truth)."""
         measured = self._measured.get(module, {})
         estimates = {t: p for t, (p, _) in measured.items()}
         covs = {t: c for t, (_, c) in measured.items() if c is not None}
         v = verify_module(self.model, module, estimates, covariances=covs, rejected=self.rejected_tags,
                           not_deployed=self.slam.not_deployed(), tolerances=self.tolerances)
         self._verdicts[module] = v
-        return ModuleResult(module, v.verdict, v.reason, deviation_m=v.deviation_m, deviation_rad=v.deviation_rad,
-                            sigma_position_m=v.sigma_m, sigma_rotation_rad=v.sigma_rad, tags_seen=[t for t in self.model.module_by_name[module].tags
-                                                                   if t in estimates],
-                            position_covariance_m2=None if v.position_covariance is None else v.position_covariance.tolist())
+        return v
 
     def camera_estimates(self) -> list[tuple[Pose3, np.ndarray | None]]:
         """The estimated camera poses (structure frame) of the last step's views, with covariances."""
@@ -179,10 +152,6 @@ class Measurement:
                 cov = None
             out.append((self.slam.camera_pose(k), cov))
         return out
-
-    def module_estimate(self, module: str) -> Pose3 | None:
-        v = self._verdicts.get(module)
-        return v.estimate if v is not None else None
 
     def tag_estimates(self) -> dict[int, tuple[Pose3, np.ndarray | None]]:
         out = {}

@@ -7,6 +7,9 @@
   (`Console.line`), and warnings: every `log_text("warning"|"error", ...)` a procedure writes to the
   run's log (rig calibration problems, rejected tags, re-measures) and the drivers' retries and
   reconnects, which otherwise only reach the comms log.
+- The tables: the BORG verification table (a module's row as soon as its verdict is decided, the
+  whole table at the end) and the truss node table, both from the run's summary, which is also
+  what `lab runs show` prints them from.
 
 Everything goes to stdout (the bars to stderr), flushed line by line, so `lab run ... > run.txt`
 reads in order.
@@ -14,9 +17,12 @@ reads in order.
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass, field
 from typing import Any, Callable, TextIO
+
+from lab.core.verdicts import tally
 
 # comms events worth an operator's attention (drivers/transport.py writes them as `event` notes)
 COMMS_WARNINGS = ("retry ", "reconnect", "link ")
@@ -98,3 +104,62 @@ def _isatty(stream: TextIO) -> bool:
         return bool(stream.isatty())
     except (AttributeError, ValueError):
         return False
+
+
+# ---- the tables ---------------------------------------------------------------------------------
+
+BORG_HEADER = (f"{'module':<7} {'verdict':<10} {'dev mm':>7} {'dev deg':>7} {'tol mm/deg':>10} {'1σ mm':>6} "
+               f"{'err mm':>7} {'err deg':>7}  reason")
+BORG_LEGEND = ("dev: measured distance from the design, which the verdict judges (ok within tol - 2σ, flagged "
+               "beyond tol + 2σ or not fully deployed, uncertain in between once the step's views are spent); "
+               "tol: tolerance; 1σ: estimated position uncertainty; err: estimate vs the simulated truth "
+               "(blank on hardware)")
+TRUSS_LEGEND = ("error: the built node's distance from its design position; estimate error: the estimator's "
+                "node position vs the built one (both against the simulated truth, blank on hardware)")
+_DEG = 180 / math.pi
+
+
+def _num(value: float | None, scale: float, digits: int) -> str:
+    return "" if value is None else f"{value * scale:.{digits}f}"
+
+
+def borg_row(mod: dict[str, Any]) -> str:
+    """One module's row: deviation from the design (mm, deg), tolerance, 1 sigma, truth error."""
+    tol = ""
+    if mod.get("tolerance_m") is not None and mod.get("tolerance_rad") is not None:
+        tol = f"{mod['tolerance_m'] * 1000:g}/{math.degrees(mod['tolerance_rad']):g}"
+    return (f"{mod['name']:<7} {mod['verdict']:<10} {_num(mod.get('deviation_m'), 1000, 2):>7} "
+            f"{_num(mod.get('deviation_rad'), _DEG, 3):>7} {tol:>10} "
+            f"{_num(mod.get('sigma_position_m'), 1000, 2):>6} {_num(mod.get('position_error_m'), 1000, 2):>7} "
+            f"{_num(mod.get('rotation_error_rad'), _DEG, 3):>7}  {mod.get('reason', '')}").rstrip()
+
+
+def more_views_line(name: str, deviation_m: float | None, sigma_m: float | None, views: int) -> str:
+    """An uncertain module about to be measured again."""
+    return (f"  {name}: uncertain ({_num(deviation_m, 1000, 2)} mm, 1σ {_num(sigma_m, 1000, 2)} mm); "
+            f"{views} more view(s)")
+
+
+def borg_table(summary: dict[str, Any]) -> str:
+    """The verification table printed at the end of `lab run borg` (and by `lab runs show`)."""
+    modules = summary.get("modules", [])
+    counts = tally(mod["verdict"] for mod in modules)
+    return "\n".join([BORG_HEADER, *(borg_row(mod) for mod in modules),
+                      ", ".join(f"{n} {v}" for v, n in counts.items())
+                      + f"; rejected tags: {summary.get('rejected_tags', [])}",
+                      BORG_LEGEND])
+
+
+def truss_table(summary: dict[str, Any]) -> str:
+    """The node table printed at the end of `lab run truss` (and by `lab runs show`)."""
+    lines = [TRUSS_LEGEND, f"{'node':>5} {'error (mm)':>11} {'estimate error (mm)':>20}"]
+    for n in summary.get("nodes", []):
+        e = n.get("error_m")
+        ee = n.get("estimate_error_m")
+        lines.append(f"{n['id']:>5} {'' if e is None else f'{e * 1000:.3f}':>11} "
+                     f"{'' if ee is None else f'{ee * 1000:.3f}':>20}")
+    rms = summary.get("rms_node_error_m")
+    if rms is not None:
+        lines.append(f"rms node error {rms * 1000:.3f} mm over {summary.get('steps')} nodes "
+                     f"({summary.get('estimator')})")
+    return "\n".join(lines)

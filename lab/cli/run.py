@@ -294,32 +294,11 @@ def _remove_if_unused(run_dir: Path, created: bool) -> None:
 def _print_outcome(procedure: str, outcome) -> None:
     s = outcome.summary
     print()
-    if procedure == "borg":
-        from procedures.borg import format_table
+    from procedures.console import borg_table, truss_table
 
-        print(format_table(s))
-    else:
-        print(format_truss_table(s))
+    print(borg_table(s) if procedure == "borg" else truss_table(s))
     print(f"result: {outcome.result}{' - ' + outcome.reason if outcome.reason else ''}")
     print(f"run: {outcome.run_dir / 'run.mcap'}   summary: {outcome.run_dir / 'summary.json'}")
-
-
-def format_truss_table(s: dict[str, Any]) -> str:
-    """The node table printed at the end of `lab run truss` (and by `lab runs show`)."""
-    lines = [TRUSS_LEGEND, f"{'node':>5} {'error (mm)':>11} {'estimate error (mm)':>20}"]
-    for n in s.get("nodes", []):
-        e = n.get("error_m")
-        ee = n.get("estimate_error_m")
-        lines.append(f"{n['id']:>5} {'' if e is None else f'{e * 1000:.3f}':>11} "
-                     f"{'' if ee is None else f'{ee * 1000:.3f}':>20}")
-    rms = s.get("rms_node_error_m")
-    if rms is not None:
-        lines.append(f"rms node error {rms * 1000:.3f} mm over {s.get('steps')} nodes ({s.get('estimator')})")
-    return "\n".join(lines)
-
-
-TRUSS_LEGEND = ("error: the built node's distance from its design position; estimate error: the estimator's "
-                "node position vs the built one (both against the simulated truth, blank on hardware)")
 
 
 def _resume(args: argparse.Namespace) -> int:

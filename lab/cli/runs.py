@@ -105,14 +105,12 @@ def _show(args: argparse.Namespace) -> int:
             print("no summary.json (the run stopped before its first step ended)")
         return 0
     print()
+    from procedures.console import borg_table, truss_table
+
     if isinstance(summary.get("modules"), list):
-        from procedures.borg import format_table
-
-        print(format_table(summary))
+        print(borg_table(summary))
     elif isinstance(summary.get("nodes"), list):
-        from lab.cli.run import format_truss_table
-
-        print(format_truss_table(summary))
+        print(truss_table(summary))
     else:
         print(json.dumps({k: v for k, v in summary.items() if k not in ("result", "reason")}, indent=1)[:4000])
     if timings is not None:

@@ -37,12 +37,13 @@ from lab.core.geometry import Pose3
 from lab.core.recorder import messages as m
 from lab.core.recorder import topics
 from lab.core.recorder.reader import RecordedMessage, ScanState, iter_messages
+from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED
 
 DESIGN_COLOR = (150, 150, 150)
 TAG_DESIGN_COLOR = (80, 160, 255)
 TAG_ESTIMATE_COLOR = (255, 140, 0)
 ERROR_COLOR = (255, 0, 0)
-VERDICT_LEVEL = {"ok": "INFO", "flagged": "WARN", "uncertain": "WARN", "unverified": "DEBUG"}
+VERDICT_LEVEL = {OK: "INFO", FLAGGED: "WARN", UNCERTAIN: "WARN", UNVERIFIED: "DEBUG"}
 LOG_LEVEL = {0: "TRACE", 1: "DEBUG", 2: "INFO", 3: "WARN", 4: "ERROR", 5: "CRITICAL"}
 
 

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from lab.core.errors import UserError
+from lab.core.verdicts import VERDICTS, tally
 
 ENV_ROOT = "LAB_RUNS"
 ENV_CONFIG = "LAB_CONFIG"
@@ -201,7 +202,6 @@ def _start_stop_indexed(path: Path) -> tuple[Any, Any]:
     return start, stop
 
 
-VERDICTS = ("ok", "flagged", "uncertain", "unverified")
 # the numbers a summary's tables print: each a finite number or null
 _MODULE_NUMBERS = ("deviation_m", "deviation_rad", "sigma_position_m", "position_error_m", "rotation_error_rad",
                    "tolerance_m", "tolerance_rad")
@@ -291,8 +291,7 @@ def _counts(summary: Any) -> dict[str, int]:
         return {}
     mods = summary.get("modules")
     if isinstance(mods, list):
-        out = {v: sum(1 for m in mods if isinstance(m, dict) and m.get("verdict") == v)
-               for v in ("ok", "flagged", "uncertain", "unverified")}
+        out: dict[str, int] = tally(m.get("verdict") for m in mods if isinstance(m, dict))
         if summary.get("rejected_tags"):
             out["rejected tags"] = len(summary["rejected_tags"])
         return out

@@ -58,13 +58,13 @@ from google.protobuf import timestamp_pb2  # noqa: F401  (registers google/proto
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from lab.core.geometry import Pose3, from_quaternion, to_quaternion
+from lab.core.verdicts import VERDICTS, Verdict
 
 PROTO_FILE = "lab/messages.proto"
 PACKAGE = "lab"
 
 RUN_RESULTS = ("completed", "aborted", "failed")
 STEP_PHASES = ("start", "end", "error")
-VERDICTS = ("ok", "flagged", "uncertain", "unverified")
 DIRECTIONS = ("tx", "rx", "event")
 
 _T = descriptor_pb2.FieldDescriptorProto
@@ -307,6 +307,15 @@ def module_verdict(module: str, verdict: str, reason: str = "", position_error_m
                          rejected_tag_ids=[int(i) for i in rejected_tag_ids])
 
 
+def verdict_message(v: Verdict, step_index: int, tag_ids: Iterable[int], rejected_tag_ids: Iterable[int],
+                    t_s: float | None = None) -> Any:
+    """The run log's `ModuleVerdict` of a verdict record: its errors against the truth, NaN where
+    there is none (hardware)."""
+    t = v.truth
+    return module_verdict(v.module, v.verdict, v.reason, t.position_m if t else float("nan"),
+                          t.rotation_rad if t else float("nan"), step_index, tag_ids, rejected_tag_ids, t_s)
+
+
 def tag_detection(tag_id: int, corners_px: np.ndarray | Sequence[Sequence[float]], camera_T_tag: Pose3 | None = None,
                   covariance: np.ndarray | None = None, reprojection_error_px: float = float("nan"),
                   ambiguity_ratio: float = float("nan")) -> Any:
@@ -329,5 +338,5 @@ __all__ = [
     "StructureDesign", "JsonRecord", "MESSAGE_TYPES", "RUN_RESULTS", "STEP_PHASES", "VERDICTS",
     "DIRECTIONS", "timestamp", "timestamp_s", "pose_to_proto", "pose_from_proto", "covariance_to_list",
     "covariance_from_list", "pose_estimate", "pose_estimate_set", "tag_entity", "tag_id_of",
-    "module_verdict", "tag_detection",
+    "module_verdict", "verdict_message", "tag_detection",
 ]
