@@ -339,6 +339,7 @@ class BorgProcedure:
         console_of(run).line(_rig_survey_line(sol))
         self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self.rig_geometry,
                                    calibration=self.rig_calibration)
+        self.measure.tolerances = self.tolerances       # the run's tolerances, not the defaults
 
     def _solve_rig_survey(self, views: Any) -> Any:
         from estimation.rig_calibration import solve_rig
