@@ -33,7 +33,7 @@ The calibration keeps the joint posterior (lab/core/rig_calibration.py): a run t
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 import cv2
@@ -51,6 +51,7 @@ from lab.core.rig_calibration import RigCalibration
 C = gtsam.symbol_shorthand.C
 T = gtsam.symbol_shorthand.T
 S = gtsam.symbol_shorthand.S   # a turntable tag's print scale
+_CAMERA_CHR = gtsam.Symbol(C(0)).chr()
 
 
 @dataclass(frozen=True)
@@ -92,6 +93,7 @@ class RigSolution:
     corner_sigma_px: float = float("nan")  # the corner noise the final pass used (measured)
     turntable_tag_sigma_m: float = float("nan")  # the turntable tags' glue scatter the final pass used (measured)
     tag_scale_sigma: float = float("nan")        # the tags' apparent scale scatter the final pass used (measured)
+    repeatability_scale: float = float("nan")    # the devices' repeatability against their datasheet (measured)
 
     @property
     def ok(self) -> bool:
@@ -197,9 +199,10 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
     est = None
     sigma = corner_sigma_px
     glue = geometry.config.turntable_tag_sigma_m
+    repeat = 1.0
     for k in range(max(1, passes)):
         graph, values, seen, n_views = _build(views, geometry, dist, tags, turntable_tags, sigma, K_und,
-                                              means, covs, B0, M0, est, scale, glue, tag_scale_sigma)
+                                              means, covs, B0, M0, est, scale, glue, tag_scale_sigma, repeat)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
         params.setRelativeErrorTol(1e-8)
@@ -215,6 +218,7 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
             glue = _measured_glue_sigma(graph, est, tags, set(turntable_tags) & seen, glue)
             if tag_scale_sigma > 0:
                 tag_scale_sigma = _measured_scale_sigma(graph, est, set(turntable_tags) & seen, tag_scale_sigma)
+            repeat = _measured_repeatability_scale(graph, est, repeat)
     assert est is not None
     marg = gtsam.Marginals(graph, est)
     cal = est.atCal3_S2(INTRINSICS)
@@ -234,10 +238,12 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
                                  tag_covs, float(np.sqrt(np.mean(residuals ** 2))) if residuals.size else float("nan"),
                                  n_views, rig_name, joint_covariance=0.5 * (joint + joint.T), corner_sigma_px=sigma,
                                  distortion_correction=tuple(float(x) for x in est.atVector(DISTORTION)),
-                                 tag_scale_sigma=tag_scale_sigma if tag_scale_sigma > 0 else float("nan"))
+                                 tag_scale_sigma=tag_scale_sigma if tag_scale_sigma > 0 else float("nan"),
+                                 repeatability_scale=repeat if measure_corner_sigma else float("nan"))
     problems = conditioning_problems(calibration, views, limits)
     return RigSolution(calibration, residuals, problems, {"world_T_base": B0, "platform_T_camera": M0},
-                       opt.iterations(), dropped, sigma, glue, tag_scale_sigma)
+                       opt.iterations(), dropped, sigma, glue, tag_scale_sigma,
+                       repeat if measure_corner_sigma else float("nan"))
 
 
 def _measured_corner_sigma(views, est, K_und, dist, tags, sigma, scale) -> float:
@@ -306,8 +312,58 @@ def _measured_scale_sigma(graph: gtsam.NonlinearFactorGraph, est: gtsam.Values, 
     return max(SCALE_SIGMA_FLOOR, sigma * math.sqrt(vpv / r))
 
 
+# the devices are never taken as repeating better than this share of their datasheet (a survey of a
+# rig that happened to repeat perfectly must not make every later view exact), nor worse than this
+REPEATABILITY_SCALE_RANGE = (0.1, 20.0)
+
+
+def scaled_noise(noise: gtsam.noiseModel.Base, k: float) -> gtsam.noiseModel.Base:
+    """A Gaussian noise model with every sigma times k."""
+    if k == 1.0:
+        return noise
+    return gtsam.noiseModel.Gaussian.Covariance(np.asarray(noise.covariance()) * k * k)
+
+
+def with_repeatability_scale(geometry: RigGeometry, k: float) -> RigGeometry:
+    """The rig as the estimator knows it, its devices' repeatability times k (as a survey measured
+    it against the datasheet); k nan or 1: unchanged."""
+    if not math.isfinite(k) or k == 1.0:
+        return geometry
+    c = geometry.config
+    return replace(geometry, config=replace(
+        c, stewart_repeatability_m=c.stewart_repeatability_m * k, stewart_repeatability_rad=c.stewart_repeatability_rad * k,
+        turntable_repeatability_rad=c.turntable_repeatability_rad * k, lift_repeatability_m=c.lift_repeatability_m * k))
+
+
+def _measured_repeatability_scale(graph: gtsam.NonlinearFactorGraph, est: gtsam.Values, k: float) -> float:
+    """How the devices repeat against their datasheet, as the survey's views show it (variance
+    component estimation of the chain factors' group, as for the glue): k^2 <- k^2 v'Pv / r, with
+    v'Pv each chain factor's whitened residual and r = sum(6 - tr(P J Sigma J')) its redundancy,
+    Sigma the joint posterior of the factor's variables.  Every view's camera is a variable that its
+    corners pin down, so what its chain prediction misses beyond their noise is the devices'.  A
+    rig file whose repeatability is optimistic would otherwise make the survey, and every run after
+    it, too sure of the rig (mount NEES 15-23 at twice the datasheet's repeatability)."""
+    marg = gtsam.Marginals(graph, est)
+    vpv = r = 0.0
+    for i in range(graph.size()):
+        f = graph.at(i)
+        if not isinstance(f, gtsam.CustomFactor) or f.dim() != 6 or not any(gtsam.Symbol(key).chr() == _CAMERA_CHR
+                                                                            for key in f.keys()):
+            continue
+        lin = f.linearize(est)
+        A, b = lin.jacobian()
+        keys = gtsam.KeyVector(list(f.keys()))
+        sigma = marg.jointMarginalCovariance(keys).fullMatrix()
+        vpv += float(b @ b)
+        r += 6.0 - float(np.trace(A @ sigma @ A.T))
+    if r <= 0.5:
+        return k
+    lo, hi = REPEATABILITY_SCALE_RANGE
+    return float(np.clip(k * math.sqrt(vpv / r), lo, hi))
+
+
 def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, means, covs, B0, M0, start,
-           scale=None, glue_sigma_m=None, tag_scale_sigma=0.0):
+           scale=None, glue_sigma_m=None, tag_scale_sigma=0.0, repeatability_scale=1.0):
     """The calibration graph; `start` (a previous solution) seeds the values."""
     K0 = geometry.K
     cfg = geometry.config
@@ -340,7 +396,7 @@ def _build(views, geometry, dist, tags, turntable_tags, corner_sigma_px, K_und, 
         if not usable:
             continue
         n_views += 1
-        graph.add(chain_factor(geometry, v.motion, C(k)))
+        graph.add(chain_factor(geometry, v.motion, C(k), scaled_noise(geometry.chain_noise(v.motion), repeatability_scale)))
         values.insert(C(k), geometry.predict(v.motion, Pose3(), B0, M0))
         for s in usable:
             pose, size = tags[s.tag_id]

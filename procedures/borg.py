@@ -132,6 +132,7 @@ class BorgProcedure:
         from procedures.borg_measure import Measurement
 
         self.rig_geometry = RigGeometry.from_rig(rig, self.model.world_T_structure(0.0), self.intrinsics.K)
+        self._datasheet_geometry = self.rig_geometry      # the rig file's repeatability, before a survey measures it
         self.rig_calibration = None
         # what the run's rig geometry comes from, for a rig that disagrees with the camera
         self.calibration_source = f"the rig file {rig.source}'s nominal geometry"
@@ -146,7 +147,7 @@ class BorgProcedure:
             check_for_rig(self.rig_calibration, rig, self.intrinsics, self.model, str(cal_file))
             self.calibration_source = f"calibration {cal_file}"
             self._take_measured(estimator_config, self.rig_calibration.corner_sigma_px,
-                                self.rig_calibration.tag_scale_sigma)
+                                self.rig_calibration.tag_scale_sigma, self.rig_calibration.repeatability_scale)
         self.rig_survey = (self.rig_calibration is None) if rig_survey is None else bool(rig_survey)
         self.uncalibrated = uncalibrated
         if uncalibrated:
@@ -350,11 +351,17 @@ class BorgProcedure:
                         tag_scale_sigma=float(self.measure.config.get("tag_scale_sigma", 0.0)))
         self.rig_calibration = sol.calibration
         self.calibration_source = "the run's rig survey"
-        self._take_measured(self.measure.config, sol.corner_sigma_px, sol.tag_scale_sigma)
+        self._take_measured(self.measure.config, sol.corner_sigma_px, sol.tag_scale_sigma, sol.repeatability_scale)
         return sol
 
-    def _take_measured(self, config: dict[str, Any], corner_sigma_px: float, tag_scale_sigma: float) -> None:
-        """What the rig survey measured replaces the rig file's assumptions (unless given)."""
+    def _take_measured(self, config: dict[str, Any], corner_sigma_px: float, tag_scale_sigma: float,
+                       repeatability_scale: float = float("nan")) -> None:
+        """What the rig survey measured replaces the rig file's assumptions (unless given): the
+        corner noise, the tags' scale scatter, and the devices' repeatability (the run's chain
+        factors)."""
+        from estimation.rig_calibration import with_repeatability_scale
+
+        self.rig_geometry = with_repeatability_scale(self._datasheet_geometry, repeatability_scale)
         if not self._corner_sigma_given and math.isfinite(corner_sigma_px):
             config["corner_sigma_px"] = float(corner_sigma_px)
         if not self._tag_scale_given and math.isfinite(tag_scale_sigma) and config.get("tag_scale_sigma", 0) > 0:
@@ -371,7 +378,8 @@ class BorgProcedure:
                                "problems": list(sol.problems), "estimate": describe(sol.calibration),
                                "measured": {"corner_sigma_px": sol.corner_sigma_px,
                                             "turntable_tag_sigma_m": sol.turntable_tag_sigma_m,
-                                            "tag_scale_sigma": sol.tag_scale_sigma}}
+                                            "tag_scale_sigma": sol.tag_scale_sigma,
+                                            "repeatability_scale": sol.repeatability_scale}}
         if self.bench.simulated:
             out["truth_error"], out["nees"] = against_truth(sol.calibration, self.bench.sim.world)
         return out

@@ -241,3 +241,12 @@ def test_a_borg_run_starts_from_the_calibration_file_and_skips_the_survey(survey
     assert s["calibration"] == "file" and s["rig_survey"] is None
     assert [m["verdict"] for m in s["modules"]] == ["ok", "ok", "ok"]
     assert max(m["position_error_m"] for m in s["modules"]) < 0.004
+
+
+def test_the_survey_measures_the_devices_repeatability_and_the_file_keeps_it(survey):
+    from estimation.rig_calibration import REPEATABILITY_SCALE_RANGE
+
+    cal = load_rig_calibration(survey["out"])
+    lo, hi = REPEATABILITY_SCALE_RANGE
+    assert lo <= cal.repeatability_scale <= hi
+    assert json.loads(survey["out"].read_text())["repeatability_scale"] == pytest.approx(cal.repeatability_scale)

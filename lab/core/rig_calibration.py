@@ -60,6 +60,9 @@ class RigCalibration:
     distortion_correction: tuple[float, float] = (0.0, 0.0)
     # the scatter of the tags' apparent scale (print and detector), as the survey measured it
     tag_scale_sigma: float = float("nan")
+    # the devices' repeatability against the rig file's datasheet values, as the survey measured it
+    # (a run's chain factors take theirs times this)
+    repeatability_scale: float = float("nan")
 
     def joint_blocks(self) -> tuple[tuple[str | int, int], ...]:
         """What the joint covariance's blocks are, in order, with their sizes."""
@@ -88,6 +91,7 @@ class RigCalibration:
             **({"corner_sigma_px": self.corner_sigma_px} if math.isfinite(self.corner_sigma_px) else {}),
             "distortion_correction": [float(x) for x in self.distortion_correction],
             **({"tag_scale_sigma": self.tag_scale_sigma} if math.isfinite(self.tag_scale_sigma) else {}),
+            **({"repeatability_scale": self.repeatability_scale} if math.isfinite(self.repeatability_scale) else {}),
             **{name: pose(getattr(self, name), self.covariance[name]) for name in POSES},
             "camera": {"fx_px": float(self.K[0, 0]), "fy_px": float(self.K[1, 1]), "cx_px": float(self.K[0, 2]),
                        "cy_px": float(self.K[1, 2]), "covariance": np.asarray(self.covariance["K"], float).tolist()},
@@ -207,6 +211,7 @@ def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
                         f"{data.get('distortion_correction')!r}") from None
     corner_sigma = _measured(data, "corner_sigma_px", 5.0, " px", p)
     tag_scale = _measured(data, "tag_scale_sigma", 0.05, "", p)
+    repeat = _measured(data, "repeatability_scale", 20.0, "", p)
     joint = None
     if "joint_covariance" in data:
         n = sum(size for _, size in joint_blocks(tags))
@@ -225,4 +230,5 @@ def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:
         raise UserError(f"rig calibration {p}: views: expected a count of views, got {views!r}")
     return RigCalibration(poses["platform_T_camera"], poses["world_T_base"], poses["world_T_axis"], K, covs, tags,
                           tag_covs, float("nan") if rms is None else float(rms), views,
-                          str(data.get("rig", "")), str(data.get("created", "")), joint, corner_sigma, dk, tag_scale)
+                          str(data.get("rig", "")), str(data.get("created", "")), joint, corner_sigma, dk, tag_scale,
+                          repeat)
