@@ -9,7 +9,6 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -18,12 +17,7 @@ import pytest
 from lab.core.recorder import topics
 from lab.core.recorder.reader import iter_messages, read_summary
 
-LAB = [sys.executable, "-m", "lab"]
 FAULTS = Path(__file__).resolve().parents[1] / "docs" / "scenarios" / "structure_faults.toml"
-
-
-def _run(args, timeout=300):
-    return subprocess.run(LAB + args, capture_output=True, text=True, timeout=timeout)
 
 
 def _summary(out: Path) -> dict:
@@ -36,14 +30,14 @@ def _scenario(tmp_path: Path, text: str) -> str:
     return str(p)
 
 
-def test_injected_faults_are_flagged_rejected_and_the_rest_ok(tmp_path):
+def test_injected_faults_are_flagged_rejected_and_the_rest_ok(lab, run_dir):
     """The issue's scenario on the first 18 modules: 13D partially deployed, tag 17 (12S) knocked
     0.3 m, 18S placed 2 mm off (within tolerance) -- on the default sim rig, which has rig errors
     of its own and no calibration file: the run calibrates the rig first and gets the verdicts an
     ideal rig gives."""
-    out = tmp_path / "run"
-    r = _run(["run", "borg", "--auto", "--quiet", "--modules", "18", "--on-flag", "continue", "--speedup", "40",
-              "--scenario", str(FAULTS), "--out", str(out)])
+    out = run_dir
+    r = lab(["run", "borg", "--auto", "--quiet", "--modules", "18", "--on-flag", "continue", "--speedup", "40",
+             "--scenario", str(FAULTS), "--out", str(out)])
     assert r.returncode == 0, r.stdout + r.stderr
     s = _summary(out)
     assert s["result"] == "completed" and s["steps"] == 18
@@ -73,10 +67,10 @@ def test_injected_faults_are_flagged_rejected_and_the_rest_ok(tmp_path):
     assert read_summary(out / "run.mcap").stop.result == "completed"
 
 
-def test_flag_stops_the_run_by_default(tmp_path):
+def test_flag_stops_the_run_by_default(lab, run_dir, tmp_path):
     sc = _scenario(tmp_path, '[[borg.fault]]\nkind = "partial_deploy"\nmodule = "2D"\nheight_m = 0.30\n')
-    out = tmp_path / "run"
-    r = _run(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--scenario", sc, "--out", str(out)])
+    out = run_dir
+    r = lab(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--scenario", sc, "--out", str(out)])
     assert r.returncode == 3, r.stdout + r.stderr
     s = _summary(out)
     assert s["result"] == "aborted" and "2D" in s["reason"] and "not fully deployed" in s["reason"]
@@ -84,11 +78,11 @@ def test_flag_stops_the_run_by_default(tmp_path):
     assert read_summary(out / "run.mcap").stop.result == "aborted"
 
 
-def test_retry_redeploys_and_measures_again(tmp_path):
+def test_retry_redeploys_and_measures_again(lab, run_dir, tmp_path):
     sc = _scenario(tmp_path, '[[borg.fault]]\nkind = "partial_deploy"\nmodule = "2D"\nheight_m = 0.30\n')
-    out = tmp_path / "run"
-    r = _run(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--modules", "3", "--on-flag", "retry",
-              "--scenario", sc, "--out", str(out)])
+    out = run_dir
+    r = lab(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--modules", "3", "--on-flag", "retry",
+             "--scenario", sc, "--out", str(out)])
     assert r.returncode == 0, r.stdout + r.stderr
     mod = {m["name"]: m for m in _summary(out)["modules"]}["2D"]
     assert mod["verdict"] == "ok" and mod["attempts"] == 2
@@ -96,10 +90,10 @@ def test_retry_redeploys_and_measures_again(tmp_path):
     assert any("Re-deploy" in p.question and p.answer == "retry" for p in prompts)
 
 
-def test_turntable_timeout_fails_cleanly_with_devices_stopped(tmp_path):
+def test_turntable_timeout_fails_cleanly_with_devices_stopped(lab, run_dir, tmp_path):
     sc = _scenario(tmp_path, '[[device.fault]]\ndevice = "turntable"\nkind = "timeout"\nafter_commands = 5\ncount = 0\n')
-    out = tmp_path / "run"
-    r = _run(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--scenario", sc, "--out", str(out)])
+    out = run_dir
+    r = lab(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--scenario", sc, "--out", str(out)])
     assert r.returncode == 1, r.stdout + r.stderr
     s = _summary(out)
     assert s["result"] == "failed" and "turntable" in s["reason"]
@@ -108,8 +102,8 @@ def test_turntable_timeout_fails_cleanly_with_devices_stopped(tmp_path):
     assert stop.result == "failed" and stop.traceback
 
 
-def test_dry_run_checks_every_move_and_refuses_unreachable_plans(tmp_path):
-    r = _run(["run", "borg", "--dry-run"])
+def test_dry_run_checks_every_move_and_refuses_unreachable_plans(lab, tmp_path):
+    r = lab(["run", "borg", "--dry-run"])
     assert r.returncode == 0, r.stdout + r.stderr
     assert "all planned moves are within limits" in r.stdout
     # a rig whose turntable cannot turn past 100 deg cannot show faces 3 and 4
@@ -119,19 +113,19 @@ def test_dry_run_checks_every_move_and_refuses_unreachable_plans(tmp_path):
     shutil.copy(rig_dir / "sim_camera.json", tmp_path / "sim_camera.json")
     text = (rig_dir / "sim.toml").read_text().replace("max_deg = 360.0", "max_deg = 100.0", 1)
     (tmp_path / "rig.toml").write_text(text)
-    r = _run(["run", "borg", "--dry-run", "--rig", str(tmp_path / "rig.toml")])
+    r = lab(["run", "borg", "--dry-run", "--rig", str(tmp_path / "rig.toml")])
     assert r.returncode == 2, r.stdout + r.stderr
     assert "REFUSED" in r.stdout and "4D" in r.stdout
 
 
-def test_ctrl_c_then_resume_gives_the_uninterrupted_summary(tmp_path):
+def test_ctrl_c_then_resume_gives_the_uninterrupted_summary(lab, run_dir, tmp_path):
     # with the rig survey as step 0: the resumed run must take the calibration from the checkpoint
     # four modules: the survey and two modules before the Ctrl-C, two after the resume
     args = ["run", "borg", "--auto", "--quiet", "--modules", "4", "--speedup", "40", "--scenario", str(FAULTS)]
     ref = tmp_path / "ref"
-    assert _run(args + ["--out", str(ref)]).returncode == 0
-    out = tmp_path / "run"
-    p = subprocess.Popen(LAB + args + ["--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    assert lab(args + ["--out", str(ref)]).returncode == 0
+    out = run_dir
+    p = lab.popen(args + ["--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     ckpt = out / "checkpoint.json"
     deadline = time.time() + 120
     while time.time() < deadline and not (ckpt.exists() and json.loads(ckpt.read_text())["steps_completed"] >= 3):
@@ -140,7 +134,7 @@ def test_ctrl_c_then_resume_gives_the_uninterrupted_summary(tmp_path):
     text, _ = p.communicate(timeout=60)
     assert p.returncode == 3, text
     assert _summary(out)["result"] == "aborted" and "stopped" in _summary(out)["reason"]
-    r = _run(["resume", str(out), "--auto"])
+    r = lab(["resume", str(out), "--auto"])
     assert r.returncode == 0, r.stdout + r.stderr
     a, b = _summary(ref), _summary(out)
     assert b["result"] == "completed"
@@ -158,10 +152,10 @@ def test_ctrl_c_then_resume_gives_the_uninterrupted_summary(tmp_path):
     assert ends == list(range(5))
 
 
-def test_sigkill_leaves_every_completed_step_readable(tmp_path):
-    out = tmp_path / "run"
-    p = subprocess.Popen(LAB + ["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--out", str(out)],
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+def test_sigkill_leaves_every_completed_step_readable(lab, run_dir):
+    out = run_dir
+    p = lab.popen(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--out", str(out)],
+                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ckpt = out / "checkpoint.json"
     deadline = time.time() + 120
     while time.time() < deadline and not (ckpt.exists() and json.loads(ckpt.read_text())["steps_completed"] >= 3):
@@ -171,11 +165,11 @@ def test_sigkill_leaves_every_completed_step_readable(tmp_path):
     done = json.loads(ckpt.read_text())["steps_completed"]
     verdicts = [m.message.module for m in iter_messages(out / "run.mcap") if m.topic == topics.VERDICTS]
     assert verdicts[:done] == ["1P", "2D", "3D", "4D", "5D", "6S", "7S"][:done]
-    r = _run(["recover", str(out / "run.mcap")])
+    r = lab(["recover", str(out / "run.mcap")])
     assert r.returncode == 0, r.stdout + r.stderr
 
 
-def test_a_rig_with_errors_trusted_as_exact_flags_good_modules(tmp_path):
+def test_a_rig_with_errors_trusted_as_exact_flags_good_modules(lab, tmp_path):
     """The failure the rig calibration fixes, kept measurable: twice the sim rig's errors, the rig
     file trusted as exact (--uncalibrated), and good modules are flagged; the same rig with the
     calibration in the graph (here from nominal priors, no survey) passes them."""
@@ -190,11 +184,11 @@ def test_a_rig_with_errors_trusted_as_exact_flags_good_modules(tmp_path):
     sc = _scenario(tmp_path, f"seed = 3\n[rig_error]\n{table}\n" + scenario_tables(IDEAL))
     common = ["run", "borg", "--auto", "--quiet", "--modules", "4", "--on-flag", "continue", "--speedup", "40",
               "--scenario", sc]
-    r = _run(common + ["--uncalibrated", "--observation", "pose", "--out", str(tmp_path / "trusted")])
+    r = lab(common + ["--uncalibrated", "--observation", "pose", "--out", str(tmp_path / "trusted")])
     assert r.returncode == 0, r.stdout + r.stderr
     trusted = {m["name"]: m["verdict"] for m in _summary(tmp_path / "trusted")["modules"]}
     assert list(trusted.values()).count("flagged") >= 2, trusted
-    r = _run(common + ["--no-rig-survey", "--out", str(tmp_path / "calibrated")])
+    r = lab(common + ["--no-rig-survey", "--out", str(tmp_path / "calibrated")])
     assert r.returncode == 0, r.stdout + r.stderr
     calibrated = {m["name"]: m["verdict"] for m in _summary(tmp_path / "calibrated")["modules"]}
     assert set(calibrated.values()) == {"ok"}, calibrated
