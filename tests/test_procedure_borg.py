@@ -108,7 +108,8 @@ def test_injected_faults_are_flagged_rejected_and_the_rest_ok(faulted_run, case)
 def test_flag_stops_the_run_by_default(lab, run_dir, tmp_path):
     sc = _scenario(tmp_path, '[[borg.fault]]\nkind = "partial_deploy"\nmodule = "2D"\nheight_m = 0.30\n')
     out = run_dir
-    r = lab(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--scenario", sc, "--out", str(out)])
+    r = lab(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--speedup", "40", "--scenario", sc,
+             "--out", str(out)])
     assert r.returncode == 3, r.stdout + r.stderr
     s = _summary(out)
     assert s["result"] == "aborted" and "2D" in s["reason"] and "not fully deployed" in s["reason"]
@@ -120,7 +121,7 @@ def test_retry_redeploys_and_measures_again(lab, run_dir, tmp_path):
     sc = _scenario(tmp_path, '[[borg.fault]]\nkind = "partial_deploy"\nmodule = "2D"\nheight_m = 0.30\n')
     out = run_dir
     r = lab(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--modules", "3", "--on-flag", "retry",
-             "--scenario", sc, "--out", str(out)])
+             "--speedup", "40", "--scenario", sc, "--out", str(out)])
     assert r.returncode == 0, r.stdout + r.stderr
     mod = {m["name"]: m for m in _summary(out)["modules"]}["2D"]
     assert mod["verdict"] == "ok" and mod["attempts"] == 2
@@ -131,7 +132,8 @@ def test_retry_redeploys_and_measures_again(lab, run_dir, tmp_path):
 def test_turntable_timeout_fails_cleanly_with_devices_stopped(lab, run_dir, tmp_path):
     sc = _scenario(tmp_path, '[[device.fault]]\ndevice = "turntable"\nkind = "timeout"\nafter_commands = 5\ncount = 0\n')
     out = run_dir
-    r = lab(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--scenario", sc, "--out", str(out)])
+    r = lab(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--speedup", "40", "--scenario", sc,
+             "--out", str(out)])
     assert r.returncode == 1, r.stdout + r.stderr
     s = _summary(out)
     assert s["result"] == "failed" and "turntable" in s["reason"]
@@ -193,7 +195,7 @@ def test_ctrl_c_then_resume_gives_the_uninterrupted_summary(lab, faulted_run, ru
 
 def test_sigkill_leaves_every_completed_step_readable(lab, run_dir):
     out = run_dir
-    p = lab.popen(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--out", str(out)],
+    p = lab.popen(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--speedup", "40", "--out", str(out)],
                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ckpt = out / "checkpoint.json"
     deadline = time.time() + 120
