@@ -35,8 +35,9 @@ class Lab:
     """The `lab` command as an operator types it.
 
     `lab(args)` runs it in a child process (its output captured as text, unless stdout or stderr
-    is given) and returns the CompletedProcess; `lab.popen(args, ...)` starts one to signal or kill; `lab.main(*args)` runs
-    it in this process, for speed, and returns (exit code, stdout, stderr)."""
+    is given) and returns the CompletedProcess; `lab.popen(args, ...)` starts one to signal or
+    kill; `lab.main(*args)` runs it in this process, for speed, and returns (exit code, stdout,
+    stderr)."""
 
     argv = (sys.executable, "-m", "lab")
     # what a machine without a display lacks: for `env(drop=...)`, where a viewer must not open a window
