@@ -52,16 +52,24 @@ def reference(lab, tmp_path_factory) -> dict:
     return json.loads((out / "summary.json").read_text())
 
 
-@pytest.fixture()
-def interrupted(lab, run_dir) -> Path:
-    """A truss run killed (SIGKILL) after 3 of its 6 steps."""
-    out = run_dir
+@pytest.fixture(scope="module")
+def killed(lab, tmp_path_factory) -> Path:
+    """A truss run killed (SIGKILL) after 3 of its 6 steps, made once: five tests start from it."""
+    out = tmp_path_factory.mktemp("killed") / "run"
     p = lab.popen(TRUSS + ["--speedup", "2", "--out", str(out)], stdout=subprocess.DEVNULL,
                   stderr=subprocess.DEVNULL)
     _wait_steps(out, 3)
     os.kill(p.pid, signal.SIGKILL)
     p.wait(timeout=10)
     return out
+
+
+@pytest.fixture()
+def interrupted(killed, run_dir) -> Path:
+    """A truss run killed (SIGKILL) after 3 of its 6 steps: a copy of `killed` of the test's own,
+    which it resumes, cuts or edits."""
+    shutil.copytree(killed, run_dir)
+    return run_dir
 
 
 def test_killed_and_resumed_truss_run_equals_the_uninterrupted_one(lab, interrupted, reference):
