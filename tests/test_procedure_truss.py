@@ -56,8 +56,8 @@ def test_mle_beats_open_loop_on_the_same_seed(lab, tmp_path):
     rms = {}
     for est in ("mle", "open-loop"):
         out = tmp_path / est
-        r = lab(["run", "truss", "tetrahelix:8", "--auto", "--quiet", "--estimator", est, "--scenario", sc,
-                 "--out", str(out)])
+        r = lab(["run", "truss", "tetrahelix:8", "--auto", "--quiet", "--speedup", "40", "--estimator", est,
+                 "--scenario", sc, "--out", str(out)])
         assert r.returncode == 0, r.stdout + r.stderr
         rms[est] = json.loads((out / "summary.json").read_text())["rms_node_error_m"]
     assert rms["mle"] < rms["open-loop"]

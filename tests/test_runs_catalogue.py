@@ -39,7 +39,7 @@ def root(lab, tmp_path_factory: pytest.TempPathFactory) -> Path:
              "--scenario", str(ideal), "--out", str(root / "borg-short")], env=env, cwd=base, timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
     killed = root / "bench" / "borg-killed"          # one level deeper: found too
-    p = lab.popen(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--out", str(killed)],
+    p = lab.popen(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--speedup", "40", "--out", str(killed)],
                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=base)
     ckpt = killed / "checkpoint.json"
     deadline = time.time() + 120
