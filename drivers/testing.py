@@ -2,6 +2,12 @@
 `expected_protocol`, but over the real transports: a loopback socket for the line protocol, a
 real HTTP server for GET APIs), and a fast simulated rig.
 
+This module is part of the package, not of its tests, on purpose: it is the public helper for
+anyone writing a driver, here or in their own code, as PyMeasure ships `expected_protocol` for
+its instruments.  Write down the exchange the device's manual specifies, run the driver against it,
+and leaving the `with` block fails the test if the driver sent anything else, in another order,
+or left a request out (docs/hardware.md, "Writing a driver: test it against a scripted device").
+
     with ScriptedLineDevice([(b"POS?\\n", b"OK 90.000\\n")]) as dev:
         tt = Turntable(cfg, LineTransport("turntable", dev.url))
         assert tt.position() == pytest.approx(math.pi / 2)

@@ -33,12 +33,6 @@ def _truth() -> Intrinsics:
     return Intrinsics(K, np.asarray(c["dist"], float), c["width_px"], c["height_px"])
 
 
-def _run(capsys, *argv: str) -> tuple[int, str, str]:
-    rc = main(list(argv))
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
 @pytest.fixture(scope="module")
 def sim_run(tmp_path_factory):
     """One simulated calibration through the CLI (14 views, recorded), shared by several tests."""
@@ -94,9 +88,9 @@ def test_written_file_is_what_the_camera_driver_loads(sim_run):
     assert "ChArUco" in json.loads(sim_run["out"].read_text())["source"]
 
 
-def test_frames_dir_gives_the_same_calibration(sim_run, tmp_path, capsys):
+def test_frames_dir_gives_the_same_calibration(lab, sim_run, tmp_path):
     out = tmp_path / "again.json"
-    rc, stdout, _ = _run(capsys, "calibrate", "camera", "--frames", str(sim_run["frames"]), "--out", str(out))
+    rc, stdout, _ = lab.main("calibrate", "camera", "--frames", str(sim_run["frames"]), "--out", str(out))
     assert rc == 0 and "RMS reprojection error" in stdout and f"wrote {out}" in stdout
     np.testing.assert_allclose(load_calibration(out).K, sim_run["result"]["K"], atol=1e-6)
 
@@ -178,7 +172,7 @@ def test_frontal_views_in_the_middle_draw_warnings():
     assert "cover only" in text and "tilt" in text
 
 
-def test_too_few_usable_frames_is_a_clear_error(tmp_path, capsys, sim_run):
+def test_too_few_usable_frames_is_a_clear_error(lab, tmp_path, sim_run):
     frames = tmp_path / "frames"
     frames.mkdir()
     for p in sorted(sim_run["frames"].iterdir())[:3]:
@@ -188,12 +182,12 @@ def test_too_few_usable_frames_is_a_clear_error(tmp_path, capsys, sim_run):
         cv2.imwrite(str(frames / f"blank-{i}.png"), blank)
     (frames / "broken.png").write_bytes(b"not a png")
     out = tmp_path / "cal.json"
-    rc, _, err = _run(capsys, "calibrate", "camera", "--frames", str(frames), "--out", str(out))
+    rc, _, err = lab.main("calibrate", "camera", "--frames", str(frames), "--out", str(out))
     assert rc == 2
     assert "3 usable views of the board in 9 frames" in err and f"at least {DEFAULT_MIN_FRAMES}" in err
     assert "5 x no board markers found" in err and "1 x cannot be read as an image" in err
     assert not out.exists()
-    rc, _, err = _run(capsys, "calibrate", "camera", "--sim", "4", "--out", str(out))
+    rc, _, err = lab.main("calibrate", "camera", "--sim", "4", "--out", str(out))
     assert rc == 2 and "4 usable views" in err and not out.exists()
 
 
@@ -239,7 +233,7 @@ def test_board_spec_forms():
     assert parse_board("9x6:30:22") == BOARD
 
 
-def test_cli_bad_input_is_one_line(tmp_path, capsys):
+def test_cli_bad_input_is_one_line(lab, tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
     (empty / "notes.txt").write_text("no images here")
@@ -253,11 +247,11 @@ def test_cli_bad_input_is_one_line(tmp_path, capsys):
         (["--scenario", str(tmp_path / "sc.toml"), "--frames", str(empty)], "--scenario sets up the simulated camera"),
     ]
     for extra, words in cases:
-        rc, _, err = _run(capsys, "calibrate", "camera", "--out", str(tmp_path / "c.json"), *extra)
+        rc, _, err = lab.main("calibrate", "camera", "--out", str(tmp_path / "c.json"), *extra)
         assert rc == 2 and words in err and err.count("\n") == 1, (extra, err)
     existing = tmp_path / "have.json"
     existing.write_text("{}")
-    rc, _, err = _run(capsys, "calibrate", "camera", "--sim", "3", "--out", str(existing))
+    rc, _, err = lab.main("calibrate", "camera", "--sim", "3", "--out", str(existing))
     assert rc == 2 and "already exists" in err and "--force" in err
 
 
@@ -269,9 +263,9 @@ def test_help_defaults_match_the_procedure():
     assert "calibrate" in build_parser().format_help()
 
 
-def test_printed_board_is_to_scale_and_detectable(tmp_path, capsys):
+def test_printed_board_is_to_scale_and_detectable(lab, tmp_path):
     out = tmp_path / "board.png"
-    rc, stdout, _ = _run(capsys, "calibrate", "board", "--out", str(out), "--dpi", "100")
+    rc, stdout, _ = lab.main("calibrate", "board", "--out", str(out), "--dpi", "100")
     assert rc == 0 and "270 x 180 mm" in stdout
     img = cv2.imread(str(out))
     d = BoardDetector(BOARD).detect(img, "print")
@@ -328,15 +322,15 @@ def _rig_file(tmp_path: Path, url: str) -> Path:
     return p
 
 
-def test_live_auto_grabs_from_the_rig_camera_and_records(sim_run, tmp_path, capsys):
+def test_live_auto_grabs_from_the_rig_camera_and_records(lab, sim_run, tmp_path):
     frames = sorted(sim_run["frames"].iterdir())
     blank = cv2.imencode(".png", np.full((720, 1280, 3), 110, np.uint8))[1].tobytes()
     cam = _SnapshotCamera([blank] + [p.read_bytes() for p in frames[:10]])  # the board arrives late
     try:
         rig = _rig_file(tmp_path, cam.url)
         out, mcap = tmp_path / "cam.json", tmp_path / "live.mcap"
-        rc, stdout, _ = _run(capsys, "calibrate", "camera", "--rig", str(rig), "--auto", "--interval-s", "0",
-                             "--count", "10", "--out", str(out), "--record", str(mcap))
+        rc, stdout, _ = lab.main("calibrate", "camera", "--rig", str(rig), "--auto", "--interval-s", "0",
+                                 "--count", "10", "--out", str(out), "--record", str(mcap))
     finally:
         cam.close()
     assert rc == 0 and cam.n == 11
@@ -352,13 +346,13 @@ def test_live_auto_grabs_from_the_rig_camera_and_records(sim_run, tmp_path, caps
     assert s.topic_counts[topics.COMMS] >= 11               # the driver's HTTP exchanges are in the run
 
 
-def test_live_without_a_board_gives_up_and_says_why(tmp_path, capsys):
+def test_live_without_a_board_gives_up_and_says_why(lab, tmp_path):
     blank = cv2.imencode(".png", np.full((720, 1280, 3), 110, np.uint8))[1].tobytes()
     cam = _SnapshotCamera([blank])
     try:
         rig = _rig_file(tmp_path, cam.url)
-        rc, stdout, err = _run(capsys, "calibrate", "camera", "--rig", str(rig), "--auto", "--interval-s", "0",
-                               "--count", "3", "--min-frames", "3", "--out", str(tmp_path / "c.json"))
+        rc, stdout, err = lab.main("calibrate", "camera", "--rig", str(rig), "--auto", "--interval-s", "0",
+                                   "--count", "3", "--min-frames", "3", "--out", str(tmp_path / "c.json"))
     finally:
         cam.close()
     assert rc == 2 and cam.n == 9                             # 3 x count grabs, then stop

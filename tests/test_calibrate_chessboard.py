@@ -13,7 +13,6 @@ import cv2
 import numpy as np
 import pytest
 
-from lab.cli import main
 from lab.core.errors import UserError
 from procedures.calibrate import ChessboardSpec, CalibrationSession, parse_board, read_frames
 
@@ -23,16 +22,10 @@ DATA = Path(__file__).parent / "data" / "chessboard"
 OPENCV_LEFT_FX_PX = 535.9
 
 
-def _run(capsys, *argv: str) -> tuple[int, str, str]:
-    rc = main(list(argv))
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
-def test_left_camera_calibrates_to_opencvs_focal_length_with_a_real_rms(tmp_path, capsys):
+def test_left_camera_calibrates_to_opencvs_focal_length_with_a_real_rms(lab, tmp_path):
     out, mcap = tmp_path / "left.json", tmp_path / "left.mcap"
-    rc, stdout, err = _run(capsys, "calibrate", "camera", "--frames", str(DATA), "--board", "chessboard:9x6:25",
-                           "--out", str(out), "--json", "--record", str(mcap))
+    rc, stdout, err = lab.main("calibrate", "camera", "--frames", str(DATA), "--board", "chessboard:9x6:25",
+                               "--out", str(out), "--json", "--record", str(mcap))
     assert rc == 0, err
     r = json.loads(stdout)
     assert r["board"] == "chessboard:9x6:25" and r["views_used"] == 13 and r["width_px"] == 640
@@ -78,9 +71,9 @@ def test_the_rms_is_opencvs_per_corner_figure():
     ("chessboard:1x6:25", "inner corners 1x6: each side needs 2..100"),
     ("chessboard:9x6:0", "square size 0 mm must be positive"),
 ])
-def test_bad_chessboard_spec_is_one_line_naming_the_value(spec, words, tmp_path, capsys):
-    rc, _, err = _run(capsys, "calibrate", "camera", "--frames", str(DATA), "--board", spec,
-                      "--out", str(tmp_path / "c.json"))
+def test_bad_chessboard_spec_is_one_line_naming_the_value(lab, spec, words, tmp_path):
+    rc, _, err = lab.main("calibrate", "camera", "--frames", str(DATA), "--board", spec,
+                          "--out", str(tmp_path / "c.json"))
     assert rc == 2 and words in err and err.count("\n") == 1, err
     assert not (tmp_path / "c.json").exists()
 
@@ -94,21 +87,21 @@ def test_chessboard_spec_round_trips_and_charuco_specs_are_unchanged():
         parse_board("9x6")
 
 
-def test_a_board_not_in_the_photographs_is_rejected_frame_by_frame(tmp_path, capsys):
+def test_a_board_not_in_the_photographs_is_rejected_frame_by_frame(lab, tmp_path):
     frames = tmp_path / "three"
     frames.mkdir()
     for f in ("left01.jpg", "left02.jpg", "left03.jpg"):
         shutil.copy(DATA / f, frames / f)
-    rc, stdout, err = _run(capsys, "calibrate", "camera", "--frames", str(frames), "--board", "chessboard:10x7:25",
-                           "--min-frames", "3", "--out", str(tmp_path / "c.json"))
+    rc, stdout, err = lab.main("calibrate", "camera", "--frames", str(frames), "--board", "chessboard:10x7:25",
+                               "--min-frames", "3", "--out", str(tmp_path / "c.json"))
     assert rc == 2
     assert stdout.count("not used: no 10x7 chessboard found") == 3
     assert "0 usable views" in err and err.count("\n") == 1
 
 
-def test_sim_and_board_printing_refuse_a_chessboard_in_one_line(tmp_path, capsys):
-    rc, _, err = _run(capsys, "calibrate", "camera", "--sim", "3", "--board", "chessboard:9x6:25",
-                      "--out", str(tmp_path / "c.json"))
+def test_sim_and_board_printing_refuse_a_chessboard_in_one_line(lab, tmp_path):
+    rc, _, err = lab.main("calibrate", "camera", "--sim", "3", "--board", "chessboard:9x6:25",
+                          "--out", str(tmp_path / "c.json"))
     assert rc == 2 and "--sim renders ChArUco boards only" in err and err.count("\n") == 1
-    rc, _, err = _run(capsys, "calibrate", "board", "--board", "chessboard:9x6:25", "--out", str(tmp_path / "b.png"))
+    rc, _, err = lab.main("calibrate", "board", "--board", "chessboard:9x6:25", "--out", str(tmp_path / "b.png"))
     assert rc == 2 and "prints ChArUco boards only" in err and err.count("\n") == 1

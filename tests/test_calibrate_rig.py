@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 from estimation.rig_model import nees
-from lab.cli import main
 from lab.core.config import load_rig
 from lab.core.geometry import Pose3, Rot3
 from lab.core.recorder import topics
@@ -31,28 +30,13 @@ FAST = ["--auto", "--json", "--speedup", "100"]
 CHI2_999 = {1: 10.83, 2: 13.82, 3: 16.27}
 
 
-def _run(capsys, *argv: str) -> tuple[int, str, str]:
-    rc = main(list(argv))
-    out, err = capsys.readouterr()
-    return rc, out, err
-
-
 @pytest.fixture(scope="module")
-def survey(tmp_path_factory):
-    """One small calibration of the default simulated rig through the CLI, shared by several tests."""
-    import io
-    from contextlib import redirect_stderr, redirect_stdout
-
-    d = tmp_path_factory.mktemp("rigcal")
-    out, run_dir = d / "rig_calibration.json", d / "run"
-    so, se = io.StringIO(), io.StringIO()
-    with redirect_stdout(so), redirect_stderr(se):
-        rc = main(["calibrate", "rig", *FAST, "--angle-step-deg", "45", "--out", str(out), "--run-dir", str(run_dir)])
-    assert rc == 0, se.getvalue()
+def survey(rig_survey):
+    """One small calibration of the default simulated rig through the CLI (tests/conftest.py),
+    shared by several tests, with the simulated truth it is checked against."""
     rig = load_rig()
     truth = SimWorld(rig, Scenario(seed=rig.sim.seed))      # the same world the run's bench built
-    return {"dir": d, "out": out, "run": run_dir / "run.mcap", "result": json.loads(so.getvalue()),
-            "truth": truth.true_rig, "K": truth.camera.K, "rig_error": truth.rig_error}
+    return {**rig_survey, "truth": truth.true_rig, "K": truth.camera.K, "rig_error": truth.rig_error}
 
 
 def _split_nees(est: Pose3, truth: Pose3, cov: np.ndarray) -> tuple[float, float]:
@@ -145,7 +129,7 @@ def test_run_recorded_to_mcap(survey):
     assert [n for _, n in s.steps_completed][-1] == "solve"
 
 
-def test_survey_without_platform_rotations_refused(capsys, tmp_path, monkeypatch):
+def test_survey_without_platform_rotations_refused(lab, tmp_path, monkeypatch):
     """Translations alone cannot tell the camera mount's offset from the Stewart base's: refused,
     one line per parameter naming it, exit 2, nothing written, the run still recorded."""
     from procedures import rig_survey
@@ -154,8 +138,8 @@ def test_survey_without_platform_rotations_refused(capsys, tmp_path, monkeypatch
     monkeypatch.setattr(rig_survey, "SURVEY_POSES", tuple(
         (x, y, 0.0, 0.0, d(10), 0.0) for x, y in ((-0.12, 0.0), (0.0, 0.0), (0.18, 0.0), (0.0, -0.12), (0.0, 0.12))))
     out = tmp_path / "rig_calibration.json"
-    rc, so, err = _run(capsys, "calibrate", "rig", *FAST, "--angle-step-deg", "90", "--out", str(out),
-                       "--run-dir", str(tmp_path / "run"))
+    rc, so, err = lab.main("calibrate", "rig", *FAST, "--angle-step-deg", "90", "--out", str(out),
+                           "--run-dir", str(tmp_path / "run"))
     assert rc == 2 and not out.exists()
     lines = [ln for ln in err.splitlines() if ln.startswith("lab: error: ")]
     mount = [ln for ln in lines if "platform_T_camera (camera mount)" in ln]
@@ -174,24 +158,24 @@ def test_survey_without_platform_rotations_refused(capsys, tmp_path, monkeypatch
     (["--angle-step-deg", "0"], "--angle-step-deg"),
     (["--speedup", "-1"], "--speedup"),
 ])
-def test_bad_input_one_line_exit_2(capsys, tmp_path, args, needle):
+def test_bad_input_one_line_exit_2(lab, tmp_path, args, needle):
     if "{bad}" in args:
         bad = tmp_path / "bad.toml"
         bad.write_text('seed = 1\n[rig_error]\ncamera_mount_offset_m = [0.004, -0.003]\n')
         args = [str(bad) if a == "{bad}" else a for a in args]
         needle = f"{bad}"
     out = tmp_path / "rig_calibration.json"
-    rc, so, err = _run(capsys, "calibrate", "rig", *FAST, "--out", str(out), *args)
+    rc, so, err = lab.main("calibrate", "rig", *FAST, "--out", str(out), *args)
     assert rc == 2 and so == "" and not out.exists()
     assert len(err.strip().splitlines()) == 1 and needle in err, err
     if "bad.toml" in needle:
         assert "camera_mount_offset_m" in err
 
 
-def test_existing_out_not_replaced_without_force(capsys, tmp_path):
+def test_existing_out_not_replaced_without_force(lab, tmp_path):
     out = tmp_path / "rig_calibration.json"
     out.write_text("keep me")
-    rc, _, err = _run(capsys, "calibrate", "rig", *FAST, "--out", str(out))
+    rc, _, err = lab.main("calibrate", "rig", *FAST, "--out", str(out))
     assert rc == 2 and out.read_text() == "keep me" and "--force" in err and len(err.strip().splitlines()) == 1
 
 
@@ -217,25 +201,21 @@ def test_oblique_sightings_left_out(incidence_deg, kept):
     assert dropped == (0 if kept else 1) and len(views[0].sightings) == (1 if kept else 0)
 
 
-def test_a_calibration_run_is_not_resumed_as_something_else(capsys, survey):
+def test_a_calibration_run_is_not_resumed_as_something_else(lab, survey):
     """`lab resume` on a rig calibration's run directory must not start another procedure."""
     run_dir = survey["run"].parent
-    rc, so, err = _run(capsys, "resume", str(run_dir), "--auto")
+    rc, so, err = lab.main("resume", str(run_dir), "--auto")
     assert rc == 2 and so == ""
     assert len(err.strip().splitlines()) == 1 and "cannot be resumed" in err and "calibrate" in err, err
 
 
-def test_a_borg_run_starts_from_the_calibration_file_and_skips_the_survey(survey, tmp_path):
+def test_a_borg_run_starts_from_the_calibration_file_and_skips_the_survey(lab, survey, run_dir):
     """With a calibration file matching the world, the run goes straight to the modules, its
     detector reads through the file's focal length and principal point, and the verdicts are the
     ideal rig's."""
-    import subprocess
-    import sys
-
-    out = tmp_path / "run"
-    r = subprocess.run([sys.executable, "-m", "lab", "run", "borg", "--auto", "--quiet", "--modules", "3",
-                        "--speedup", "40", "--calibration", str(survey["out"]), "--out", str(out)],
-                       capture_output=True, text=True, timeout=300)
+    out = run_dir
+    r = lab(["run", "borg", "--auto", "--quiet", "--modules", "3", "--speedup", "40", "--calibration",
+             str(survey["out"]), "--out", str(out)])
     assert r.returncode == 0, r.stdout + r.stderr
     s = json.loads((out / "summary.json").read_text())
     assert s["calibration"] == "file" and s["rig_survey"] is None

@@ -4,10 +4,8 @@ a prompt, and a calibration board page that is a real A4 sheet."""
 
 from __future__ import annotations
 
-import os
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import cv2
@@ -17,8 +15,6 @@ import pytest
 from lab.cli import DESCRIPTION, build_parser, main as lab_main
 from test_calibrate import _rig_file, _SnapshotCamera
 
-LAB = [sys.executable, "-m", "lab"]
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _one_line_error(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
@@ -61,14 +57,13 @@ def test_a_plot_into_a_missing_directory_is_one_line(capsys: pytest.CaptureFixtu
     assert err == [f"lab: error: --plot {tmp_path / 'nodir' / 'x.png'}: no such directory {tmp_path / 'nodir'}"]
 
 
-def test_end_of_input_at_a_calibration_prompt_is_one_line(tmp_path: Path) -> None:
+def test_end_of_input_at_a_calibration_prompt_is_one_line(lab, tmp_path: Path) -> None:
     blank = cv2.imencode(".png", np.full((720, 1280, 3), 110, np.uint8))[1].tobytes()
     cam = _SnapshotCamera([blank])
     try:
         rig = _rig_file(tmp_path, cam.url)
-        env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-        r = subprocess.run(LAB + ["calibrate", "camera", "--rig", str(rig), "--out", str(tmp_path / "c.json")],
-                           stdin=subprocess.DEVNULL, capture_output=True, text=True, env=env, timeout=120)
+        r = lab(["calibrate", "camera", "--rig", str(rig), "--out", str(tmp_path / "c.json")], stdin=subprocess.DEVNULL,
+                timeout=120)
     finally:
         cam.close()
     assert r.returncode == 2, r.stderr

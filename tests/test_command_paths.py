@@ -5,14 +5,11 @@ before the bench moves and without leaving a run directory."""
 
 from __future__ import annotations
 
-import io
 import time
-from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import pytest
 
-from lab.cli import main
 from lab.core.config import load_rig
 from lab.core.errors import UserError
 from lab.core.paths import check_output_dir, check_output_file
@@ -21,12 +18,11 @@ from procedures.setup import min_speedup
 SURVEY = ["calibrate", "rig", "--auto", "--quiet", "--speedup", "100", "--angle-step-deg", "90"]
 
 
-def _run(*argv: str) -> tuple[int, str, str, float]:
-    so, se = io.StringIO(), io.StringIO()
+def _run(lab, *argv: str) -> tuple[int, str, str, float]:
+    """`lab.main` and how long it took: a refusal must come before the bench moves, within seconds."""
     t0 = time.monotonic()
-    with redirect_stdout(so), redirect_stderr(se):
-        rc = main(list(argv))
-    return rc, so.getvalue(), se.getvalue(), time.monotonic() - t0
+    rc, out, err = lab.main(*argv)
+    return rc, out, err, time.monotonic() - t0
 
 
 @pytest.fixture
@@ -38,7 +34,7 @@ def afile(tmp_path) -> Path:
 
 @pytest.mark.parametrize("case", ["out under a file", "out under /proc", "out in a missing folder", "run-dir a file",
                                   "run-dir under /proc", "run-dir under a file"])
-def test_calibrate_rig_paths_refused_before_the_survey(tmp_path, afile, case):
+def test_calibrate_rig_paths_refused_before_the_survey(lab, tmp_path, afile, case):
     args = {"out under a file": ["--out", str(afile / "c.json")],
             "out under /proc": ["--out", "/proc/c.json"],
             "out in a missing folder": ["--out", str(tmp_path / "nope" / "c.json")],
@@ -46,7 +42,7 @@ def test_calibrate_rig_paths_refused_before_the_survey(tmp_path, afile, case):
             "run-dir under /proc": ["--out", str(tmp_path / "c.json"), "--run-dir", "/proc/lab-run"],
             "run-dir under a file": ["--out", str(tmp_path / "c.json"), "--run-dir", str(afile / "run")]}[case]
     before = set(tmp_path.iterdir())
-    rc, out, err, dt = _run(*SURVEY, *args)
+    rc, out, err, dt = _run(lab, *SURVEY, *args)
     assert rc == 2, err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert ("--out" in err) if "out " in case else ("--run-dir" in err)
@@ -58,20 +54,20 @@ def test_calibrate_rig_paths_refused_before_the_survey(tmp_path, afile, case):
                                   ["calibrate", "camera", "--sim", "3", "--out", "/proc/c.json"],
                                   ["calibrate", "camera", "--sim", "3", "--out", "X/c.json"],
                                   ["calibrate", "camera", "--sim", "3", "--out", "c.json", "--record", "/proc/r.mcap"]])
-def test_other_outputs_refused_in_one_line(tmp_path, afile, argv):
+def test_other_outputs_refused_in_one_line(lab, tmp_path, afile, argv):
     argv = [a.replace("X", str(afile)) for a in argv]
     argv = [str(tmp_path / a) if a == "c.json" else a for a in argv]
-    rc, out, err, _ = _run(*argv)
+    rc, out, err, _ = _run(lab, *argv)
     assert rc == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
 
 
 @pytest.mark.parametrize("argv", [["run", "borg", "--auto", "--quiet", "--modules", "1"],
                                   ["calibrate", "rig", "--auto", "--quiet"]])
-def test_a_speedup_the_devices_cannot_do_is_refused_before_the_run(tmp_path, argv):
+def test_a_speedup_the_devices_cannot_do_is_refused_before_the_run(lab, tmp_path, argv):
     out = tmp_path / "run"
     flag = "--out" if argv[0] == "run" else "--run-dir"
-    rc, _, err, dt = _run(*argv, "--speedup", "1e-9", flag, str(out), *(["--out", str(tmp_path / "c.json")]
-                                                                         if argv[0] == "calibrate" else []))
+    rc, _, err, dt = _run(lab, *argv, "--speedup", "1e-9", flag, str(out), *(["--out", str(tmp_path / "c.json")]
+                                                                              if argv[0] == "calibrate" else []))
     assert rc == 2 and "--speedup 1e-09" in err and "slowest" in err, err
     assert not out.exists() and dt < 10
 
@@ -97,7 +93,7 @@ def test_path_checks(tmp_path, afile):
             check_output_dir(bad, "--run-dir")
 
 
-def test_a_rig_whose_own_speedup_is_too_slow_is_refused_naming_its_key(tmp_path):
+def test_a_rig_whose_own_speedup_is_too_slow_is_refused_naming_its_key(lab, tmp_path):
     import shutil
 
     from lab.core.config import default_rig_path
@@ -107,8 +103,8 @@ def test_a_rig_whose_own_speedup_is_too_slow_is_refused_naming_its_key(tmp_path)
     rig = tmp_path / "slow.toml"
     rig.write_text(src.read_text().replace("speedup = 10.0", "speedup = 0.001", 1))
     out = tmp_path / "run"
-    rc, _, err, _ = _run("run", "truss", "tetrahelix:6", "--auto", "--rig", str(rig), "--out", str(out))
+    rc, _, err, _ = _run(lab, "run", "truss", "tetrahelix:6", "--auto", "--rig", str(rig), "--out", str(out))
     assert rc == 2 and "[sim] speedup 0.001" in err and str(rig) in err, err
     assert not out.exists()
-    rc, _, err, _ = _run("sim", "--rig", str(rig), "--speedup", "1e-9")
+    rc, _, err, _ = _run(lab, "sim", "--rig", str(rig), "--speedup", "1e-9")
     assert rc == 2 and "--speedup 1e-09" in err, err

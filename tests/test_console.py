@@ -5,17 +5,13 @@ warnings (device retries, rejected tags, re-measures) when they occur; tables wi
 from __future__ import annotations
 
 import io
-import os
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 from lab.core.imaging import IDEAL, scenario_tables
 from procedures.console import Console, ConsoleRecorder
 
-LAB = [sys.executable, "-m", "lab"]
-ROOT = Path(__file__).resolve().parents[1]
 
 SCENARIO = """seed = 3
 [[borg.fault]]
@@ -36,18 +32,17 @@ count = 1
 # module read on the realistic camera without a survey is `uncertain`, 1-sigma 2.4 mm, and takes more views)
 
 
-def _run_redirected(args: list[str], out_file: Path) -> int:
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+def _run_redirected(lab, args: list[str], out_file: Path) -> int:
     with open(out_file, "w") as f:   # stdout and stderr both a file: not a terminal
-        return subprocess.run(LAB + args, stdout=f, stderr=subprocess.STDOUT, env=env, timeout=600).returncode
+        return lab(args, stdout=f, stderr=subprocess.STDOUT, timeout=600).returncode
 
 
-def test_a_redirected_borg_run_prints_steps_verdicts_and_warnings_as_they_happen(tmp_path: Path) -> None:
+def test_a_redirected_borg_run_prints_steps_verdicts_and_warnings_as_they_happen(lab, tmp_path: Path, run_dir: Path) -> None:
     sc = tmp_path / "sc.toml"
     sc.write_text(SCENARIO)
     out = tmp_path / "out.txt"
-    rc = _run_redirected(["run", "borg", "--auto", "--no-rig-survey", "--modules", "4", "--on-flag", "retry",
-                          "--speedup", "40", "--scenario", str(sc), "--out", str(tmp_path / "run")], out)
+    rc = _run_redirected(lab, ["run", "borg", "--auto", "--no-rig-survey", "--modules", "4", "--on-flag", "retry",
+                               "--speedup", "40", "--scenario", str(sc), "--out", str(run_dir)], out)
     text = out.read_text()
     lines = text.splitlines()
     assert rc in (0, 3), text
@@ -72,10 +67,10 @@ def test_a_redirected_borg_run_prints_steps_verdicts_and_warnings_as_they_happen
     assert len(lines) < 40
 
 
-def test_a_redirected_truss_run_prints_a_line_per_step_and_explains_its_table(tmp_path: Path) -> None:
+def test_a_redirected_truss_run_prints_a_line_per_step_and_explains_its_table(lab, tmp_path: Path, run_dir: Path) -> None:
     out = tmp_path / "out.txt"
-    rc = _run_redirected(["run", "truss", "tetrahelix:6", "--auto", "--speedup", "40",
-                          "--out", str(tmp_path / "run")], out)
+    rc = _run_redirected(lab, ["run", "truss", "tetrahelix:6", "--auto", "--speedup", "40",
+                               "--out", str(run_dir)], out)
     text = out.read_text()
     assert rc == 0, text
     assert "\r" not in text and "%|" not in text

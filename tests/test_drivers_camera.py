@@ -17,6 +17,9 @@ from lab.core.errors import UserError
 from sim_devices.bench import start_sim_bench
 from sim_devices.render import tag_corners_px
 
+# the bench (tests/conftest.py) with every module placed: tags for the camera to see
+pytestmark = pytest.mark.sim_bench(place_all=True)
+
 _PARAMS = cv2.aruco.DetectorParameters()
 _PARAMS.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
 DETECTOR = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), _PARAMS)
@@ -42,12 +45,6 @@ def test_calibration_round_trip_and_errors(tmp_path):
 def test_snapshot_urls_are_recognised():
     assert is_snapshot_url("http://127.0.0.1:27103/frame.png")
     assert not is_snapshot_url("http://cam.local/video.mjpg") and not is_snapshot_url("0")
-
-
-@pytest.fixture(scope="module")
-def bench():
-    with start_sim_bench(fast_sim_rig(), speedup=1000, place_all=True) as b:
-        yield b
 
 
 def test_sim_frames_show_real_tags_where_the_true_pose_puts_them(bench):

@@ -14,12 +14,6 @@ from lab.core.comms import MemoryComms
 from sim_devices.bench import start_sim_bench
 
 
-@pytest.fixture(scope="module")
-def bench():
-    with start_sim_bench(fast_sim_rig(), speedup=1000) as b:
-        yield b
-
-
 def attach(bench, name: str, length: float) -> Ipjr:
     bench.world.ipjrs[name].attach(length)
     ipjr = Ipjr.open(bench.rig.ipjrs[name], MemoryComms())

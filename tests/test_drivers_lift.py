@@ -20,6 +20,8 @@ from sim_devices.bench import start_sim_bench
 
 RIG = load_rig()
 LIMITS = b"OK min_mm=-600.000 max_mm=2600.000 speed_mm_s=1000.000 settle_s=0.000\n"
+# the bench (tests/conftest.py) also serves each serial device on a pty: the driver over a real tty
+pytestmark = pytest.mark.sim_bench(pty=True)
 
 
 def lift_on(url: str, comms=None) -> Lift:
@@ -28,12 +30,6 @@ def lift_on(url: str, comms=None) -> Lift:
 
 def status(state: str, pos_mm: float, target_mm: float) -> bytes:
     return f"OK state={state} pos_mm={pos_mm:.3f} target_mm={target_mm:.3f} fault=none\n".encode()
-
-
-@pytest.fixture(scope="module")
-def bench():
-    with start_sim_bench(fast_sim_rig(), speedup=1000, pty=True) as b:
-        yield b
 
 
 def test_move_is_limits_status_move_then_polls_until_idle():

@@ -14,15 +14,18 @@ import pytest
 from drivers.errors import RigMismatch, WorkspaceError
 from drivers.stewart import Stewart
 from drivers.stewart_kinematics import StewartKinematics
-from drivers.testing import fast_sim_rig
 from lab.cli import main
 from lab.core.comms import MemoryComms
 from lab.core.config import load_rig
 from lab.core.geometry import from_xyzrpy, pose_error, to_xyzrpy
-from sim_devices.bench import start_sim_bench
+from lab.core.rig_error import RigError
+from lab.core.scenario import Scenario
 from sim_devices.stewart import platform_pose
 
 RIG = load_rig()
+# the bench (tests/conftest.py) on an ideal rig: these tests compare the driver's kinematics with the
+# simulator's, not the rig file with the truth (tests/test_rig_error.py does that)
+pytestmark = pytest.mark.sim_bench(scenario=Scenario(rig_error=RigError()))
 KIN = StewartKinematics(RIG.stewart.geometry)
 
 
@@ -94,17 +97,6 @@ def test_lab_stewart_ik_with_a_rig_file(tmp_path, capsys):
     rig.write_text(text)
     assert main(["stewart", "ik", "0", "0", "0", "0", "0", "0", "--rig", str(rig), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["home_m"] == [0.0, 0.0, 0.42]
-
-
-@pytest.fixture(scope="module")
-def bench():
-    # an ideal rig: these tests compare the driver's kinematics with the simulator's, not the rig file
-    # with the truth (tests/test_rig_error.py does that)
-    from lab.core.rig_error import RigError
-    from lab.core.scenario import Scenario
-
-    with start_sim_bench(fast_sim_rig(), Scenario(rig_error=RigError()), speedup=1000) as b:
-        yield b
 
 
 def test_moves_put_the_true_camera_where_the_driver_says(bench):

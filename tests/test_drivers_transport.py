@@ -10,10 +10,9 @@ import time
 import pytest
 
 from drivers.errors import DeviceFault, DeviceTimeout, Disconnected, ProtocolError
-from drivers.testing import ScriptedHttpDevice, ScriptedLineDevice, fast_sim_rig
+from drivers.testing import ScriptedHttpDevice, ScriptedLineDevice
 from drivers.transport import HttpTransport, LineTransport, open_transport, parse_reply, port_lock
 from lab.core.comms import MemoryComms
-from sim_devices.bench import start_sim_bench
 
 
 def test_parse_reply_shapes():
@@ -100,12 +99,6 @@ def test_one_lock_per_port():
     c = open_transport("c", "http://127.0.0.1:8/x")
     assert a.lock is b.lock and a.lock is port_lock("socket://127.0.0.1:1")
     assert c.lock is port_lock("http://127.0.0.1:8/other") and c.lock is not a.lock
-
-
-@pytest.fixture(scope="module")
-def bench():
-    with start_sim_bench(fast_sim_rig(), speedup=1000) as b:
-        yield b
 
 
 def test_threads_sharing_a_port_never_get_each_others_replies(bench):

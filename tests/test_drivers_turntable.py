@@ -13,11 +13,8 @@ from drivers.testing import fast_sim_rig
 from lab.core.comms import MemoryComms
 from sim_devices.bench import start_sim_bench
 
-
-@pytest.fixture(scope="module")
-def bench():
-    with start_sim_bench(fast_sim_rig(), speedup=1000, pty=True) as b:
-        yield b
+# the bench (tests/conftest.py) also serves each serial device on a pty: the driver over a real tty
+pytestmark = pytest.mark.sim_bench(pty=True)
 
 
 def test_home_move_position_and_world_truth(bench):

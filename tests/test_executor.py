@@ -264,23 +264,20 @@ def test_no_scheduler_listening_is_one_line():
     (["--scheduler", "localhost"], "argument --scheduler: expected tcp://HOST:PORT"),
     (["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"], "not allowed with argument"),
 ])
-def test_bench_flags_are_checked_in_one_line(argv, message):
-    r = subprocess.run([sys.executable, "-m", "lab", "bench", "mle", "--quick", *argv], capture_output=True, text=True,
-                       env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=60)
+def test_bench_flags_are_checked_in_one_line(lab, argv, message):
+    r = lab(["bench", "mle", "--quick", *argv], timeout=60)
     assert r.returncode == 2
     assert len(r.stderr.strip().splitlines()) == 1 and message in r.stderr, r.stderr
 
 
-def test_calibration_runs_side_by_side_give_the_figures_of_runs_one_after_another(tmp_path):
+def test_calibration_runs_side_by_side_give_the_figures_of_runs_one_after_another(lab, tmp_path):
     """Two `lab run borg` at once on one machine: each simulated bench on its own free ports, the
     same verdicts and errors as the same seeds run one after another."""
     out = {}
     for workers in (1, 2):
         d = tmp_path / f"w{workers}"
-        r = subprocess.run([sys.executable, "-m", "lab", "bench", "calibration", "--seeds", "2", "--modules", "1",
-                            "--scales", "0", "--modes", "uncalibrated", "--workers", str(workers), "--json",
-                            "--out", str(d)], capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
-                           timeout=300)
+        r = lab(["bench", "calibration", "--seeds", "2", "--modules", "1", "--scales", "0", "--modes", "uncalibrated",
+                 "--workers", str(workers), "--json", "--out", str(d)])
         assert r.returncode == 0, r.stderr
         out[workers] = json.loads((d / "calibration.json").read_text())
         assert not (d / "trials.jsonl").exists()

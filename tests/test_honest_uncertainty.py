@@ -132,23 +132,20 @@ def test_the_joint_posterior_and_the_measured_corner_sigma_round_trip_through_th
         rig_calibration_from_json(bad)
 
 
-def test_a_run_on_a_poor_camera_keeps_its_verdicts_right_and_its_sigma_honest(tmp_path):
+def test_a_run_on_a_poor_camera_keeps_its_verdicts_right_and_its_sigma_honest(lab, tmp_path, run_dir):
     """A camera whose corners are near 0.1 px (the poor camera of `lab bench trust`): the run
     measures that from its own residuals, flags the module 8 mm off, passes or re-measures the good
     ones, and states a 1-sigma that covers each good module's error (simulated truth)."""
     import json
-    import subprocess
-    import sys
 
     from lab.studies.bench_trust import CAMERAS
 
     sc = tmp_path / "poor.toml"
     sc.write_text('seed = 5\n\n[[borg.fault]]\nkind = "module_offset"\nmodule = "5D"\noffset_m = [0.0, 0.008, 0.0]\n\n'
                   + CAMERAS["poor"])
-    out = tmp_path / "run"
-    r = subprocess.run([sys.executable, "-m", "lab", "run", "borg", "--auto", "--quiet", "--on-flag", "continue",
-                        "--modules", "6", "--speedup", "100", "--scenario", str(sc), "--out", str(out)],
-                       capture_output=True, text=True, timeout=300)
+    out = run_dir
+    r = lab(["run", "borg", "--auto", "--quiet", "--on-flag", "continue", "--modules", "6", "--speedup", "100",
+             "--scenario", str(sc), "--out", str(out)])
     assert r.returncode == 0, r.stdout + r.stderr
     s = json.loads((out / "summary.json").read_text())
     verdicts = {m["name"]: m["verdict"] for m in s["modules"]}

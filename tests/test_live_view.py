@@ -6,7 +6,6 @@ docs/recording.md, not a timed test.)"""
 
 from __future__ import annotations
 
-import os
 import signal
 import socket
 import subprocess
@@ -21,16 +20,11 @@ from rerun.chunk import RrdReader
 from lab.core.review import review, rrd_entity_paths
 from lab.core.viewer import free_port
 
-LAB = [sys.executable, "-m", "lab"]
-ROOT = Path(__file__).resolve().parents[1]
 SHORT_BORG = ["run", "borg", "--auto", "--no-rig-survey", "--modules", "2", "--speedup", "40"]
 
 
-def _env() -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    env["RERUN_ANALYTICS"] = "false"
-    return env
+def _env(lab) -> dict[str, str]:
+    return lab.env(drop=lab.NO_DISPLAY, RERUN_ANALYTICS="false")
 
 
 def _listening(port: int) -> bool:
@@ -41,18 +35,18 @@ def _listening(port: int) -> bool:
         return False
 
 
-def test_the_live_view_is_the_review_of_the_same_run(tmp_path: Path) -> None:
+def test_the_live_view_is_the_review_of_the_same_run(lab, run_dir, tmp_path: Path) -> None:
     port, rrd = free_port(), tmp_path / "live.rrd"
     receiver = subprocess.Popen([sys.executable, "-m", "rerun", "--port", str(port), "--bind", "127.0.0.1",
-                                 "--save", str(rrd)], env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                 "--save", str(rrd)], env=_env(lab), stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 60
         while not _listening(port):
             assert receiver.poll() is None and time.monotonic() < deadline, "the rerun receiver did not start"
             time.sleep(0.1)
-        out = tmp_path / "run"
-        r = subprocess.run(LAB + SHORT_BORG + ["--view", f"127.0.0.1:{port}", "--out", str(out)], env=_env(),
-                           capture_output=True, text=True, timeout=300)
+        out = run_dir
+        r = lab(SHORT_BORG + ["--view", f"127.0.0.1:{port}", "--out", str(out)], env=_env(lab))
         assert r.returncode == 0, r.stdout + r.stderr
         assert f"live view: sent to the Rerun viewer at rerun+http://127.0.0.1:{port}/proxy" in r.stdout
     finally:
@@ -70,9 +64,8 @@ def test_the_live_view_is_the_review_of_the_same_run(tmp_path: Path) -> None:
         assert entity in live, entity
 
 
-def test_without_a_display_the_live_view_serves_the_web_viewer_and_stops_it_with_the_run(tmp_path: Path) -> None:
-    r = subprocess.run(LAB + SHORT_BORG + ["--view", "--out", str(tmp_path / "run")], env=_env(),
-                       stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=300)
+def test_without_a_display_the_live_view_serves_the_web_viewer_and_stops_it_with_the_run(lab, run_dir) -> None:
+    r = lab(SHORT_BORG + ["--view", "--out", str(run_dir)], env=_env(lab), stdin=subprocess.DEVNULL)
     assert r.returncode == 0, r.stdout + r.stderr
     first = r.stdout.splitlines()[0]
     assert first.startswith("live view: serving the Rerun web viewer on loopback (no display")
@@ -84,12 +77,11 @@ def test_without_a_display_the_live_view_serves_the_web_viewer_and_stops_it_with
     assert not _listening(web_port) and not _listening(grpc_port)   # nothing left behind
 
 
-def test_a_view_url_nothing_answers_at_is_refused_before_the_run(tmp_path: Path) -> None:
+def test_a_view_url_nothing_answers_at_is_refused_before_the_run(lab, run_dir) -> None:
     port = free_port()
-    r = subprocess.run(LAB + SHORT_BORG + ["--view", f"127.0.0.1:{port}", "--out", str(tmp_path / "run")], env=_env(),
-                       capture_output=True, text=True, timeout=120)
+    r = lab(SHORT_BORG + ["--view", f"127.0.0.1:{port}", "--out", str(run_dir)], env=_env(lab), timeout=120)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.strip().splitlines() == [f"lab: error: --view/--connect rerun+http://127.0.0.1:{port}/proxy: "
                                              f"no Rerun viewer answers there (start one with `rerun`, or leave out "
                                              f"the URL)"]
-    assert not (tmp_path / "run").exists()
+    assert not run_dir.exists()

@@ -11,8 +11,6 @@ import pty
 import re
 import select
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -20,18 +18,15 @@ from lab.core.recorder import topics
 from lab.core.recorder.reader import iter_messages
 from procedures.pause import interactive
 
-LAB = [sys.executable, "-m", "lab"]
-ROOT = Path(__file__).resolve().parents[1]
 DEPLOY_PROMPT = re.compile(r"(Deploy|Place) module (\S+) .*\[DONE/abort\] $")
 
 
 class Operator:
     """A run under a pseudo-terminal: read what it prints, type answers."""
 
-    def __init__(self, args: list[str]) -> None:
+    def __init__(self, lab, args: list[str]) -> None:
         master, slave = pty.openpty()
-        env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-        self.proc = subprocess.Popen(LAB + args, stdin=slave, stdout=slave, stderr=slave, env=env, close_fds=True)
+        self.proc = lab.popen(args, stdin=slave, stdout=slave, stderr=slave, close_fds=True)
         os.close(slave)
         self.master = master
         self.text = ""
@@ -82,9 +77,9 @@ def _args(out: Path) -> list[str]:
     return ["run", "borg", "--no-rig-survey", "--modules", "3", "--speedup", "20", "--out", str(out)]
 
 
-def test_ctrl_c_pauses_at_the_end_of_the_step_and_resume_carries_on(tmp_path: Path) -> None:
+def test_ctrl_c_pauses_at_the_end_of_the_step_and_resume_carries_on(lab, tmp_path: Path) -> None:
     out = tmp_path / "run"
-    op = Operator(_args(out))
+    op = Operator(lab, _args(out))
     try:
         assert op.read_until(DEPLOY_PROMPT).group(2) == "1P"
         op.type("")
@@ -117,9 +112,9 @@ def test_ctrl_c_pauses_at_the_end_of_the_step_and_resume_carries_on(tmp_path: Pa
     assert sorted(stops) == ["stewart", "turntable"]
 
 
-def test_abort_at_the_pause_ends_the_run_resumable_and_a_second_ctrl_c_aborts_at_once(tmp_path: Path) -> None:
+def test_abort_at_the_pause_ends_the_run_resumable_and_a_second_ctrl_c_aborts_at_once(lab, tmp_path: Path) -> None:
     out = tmp_path / "run"
-    op = Operator(_args(out))
+    op = Operator(lab, _args(out))
     try:
         op.read_until(DEPLOY_PROMPT)
         op.type("")
@@ -136,7 +131,7 @@ def test_abort_at_the_pause_ends_the_run_resumable_and_a_second_ctrl_c_aborts_at
     assert json.loads((out / "checkpoint.json").read_text())["steps_completed"] == 1   # lab resume takes it on
 
     out2 = tmp_path / "run2"
-    op = Operator(_args(out2))
+    op = Operator(lab, _args(out2))
     try:
         op.read_until(DEPLOY_PROMPT)
         op.type("")

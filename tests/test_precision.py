@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import gtsam
@@ -21,7 +19,6 @@ from estimation.sf_graphslam import C, SfGraphSlam, SlamConfig
 from lab.core.geometry import Pose3, Rot3, look_at
 from lab.core.structures.borg import build_borg
 
-LAB = [sys.executable, "-m", "lab"]
 K = np.array([[914.0, 0.0, 639.5], [0.0, 914.0, 359.5], [0.0, 0.0, 1.0]])
 SIGMA_PX = 0.1
 CAM_SIGMA = 1e-5
@@ -100,20 +97,16 @@ def test_module_sigma_of_a_flat_tag_is_its_position_sigma():
     assert s.position_m == pytest.approx(2e-4) and s.position_rms_m == pytest.approx(2e-4 * math.sqrt(3))
 
 
-def _run(args, timeout=300):
-    return subprocess.run(LAB + args, capture_output=True, text=True, timeout=timeout)
-
-
-def test_an_uncertain_verdict_takes_more_views_and_stays_uncertain_when_the_budget_is_spent(tmp_path):
+def test_an_uncertain_verdict_takes_more_views_and_stays_uncertain_when_the_budget_is_spent(lab, tmp_path, run_dir):
     """1P placed 5 mm off against a 5 mm tolerance: no number of views can settle it either way
     within the band, so the run takes extra views up to the budget and reports `uncertain` with
     the deviation, sigma and tolerance -- never `ok`."""
     scen = tmp_path / "s.toml"
     scen.write_text('seed = 4\n[rig_error]\nideal = true\n[[borg.fault]]\nkind = "module_offset"\nmodule = "1P"\n'
                     'offset_m = [0.0, 0.0, 0.005]\n')
-    out = tmp_path / "run"
-    r = _run(["run", "borg", "--auto", "--quiet", "--modules", "1", "--no-rig-survey", "--speedup", "40",
-              "--scenario", str(scen), "--out", str(out), "--max-views", "9", "--sigma-target-mm", "2"])
+    out = run_dir
+    r = lab(["run", "borg", "--auto", "--quiet", "--modules", "1", "--no-rig-survey", "--speedup", "40",
+             "--scenario", str(scen), "--out", str(out), "--max-views", "9", "--sigma-target-mm", "2"])
     assert r.returncode == 0, r.stdout + r.stderr
     s = json.loads((out / "summary.json").read_text())
     m = s["modules"][0]
@@ -125,8 +118,8 @@ def test_an_uncertain_verdict_takes_more_views_and_stays_uncertain_when_the_budg
     # tolerance holds after the run's own rig survey (which once rebuilt the estimator with the
     # default 5 mm / 1 deg)
     out2 = tmp_path / "run2"
-    r = _run(["run", "borg", "--auto", "--quiet", "--modules", "1", "--speedup", "40",
-              "--scenario", str(scen), "--out", str(out2), "--tolerance", "closeout_square=10,1"])
+    r = lab(["run", "borg", "--auto", "--quiet", "--modules", "1", "--speedup", "40",
+             "--scenario", str(scen), "--out", str(out2), "--tolerance", "closeout_square=10,1"])
     assert r.returncode == 0, r.stdout + r.stderr
     m2 = json.loads((out2 / "summary.json").read_text())["modules"][0]
     assert m2["verdict"] == "ok" and m2["tolerance_m"] == pytest.approx(0.010)
@@ -134,8 +127,8 @@ def test_an_uncertain_verdict_takes_more_views_and_stays_uncertain_when_the_budg
 
 
 @pytest.mark.parametrize("value", ["closeout_square=5", "sideways=5,1", "all=0,1", "deployable=nan,1", "x"])
-def test_a_bad_tolerance_is_one_line_and_exit_2(tmp_path, value):
-    r = _run(["run", "borg", "--auto", "--quiet", "--modules", "1", "--dry-run", "--out", str(tmp_path / "r"),
-              "--tolerance", value])
+def test_a_bad_tolerance_is_one_line_and_exit_2(lab, tmp_path, value):
+    r = lab(["run", "borg", "--auto", "--quiet", "--modules", "1", "--dry-run", "--out", str(tmp_path / "r"),
+             "--tolerance", value])
     assert r.returncode == 2, r.stdout + r.stderr
     assert "--tolerance" in r.stderr and len(r.stderr.strip().splitlines()) == 1

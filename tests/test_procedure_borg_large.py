@@ -5,19 +5,11 @@ a rig that cannot see some modules says which before anything moves."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import lab.core.config as config
 from lab.core.recorder import topics
 from lab.core.recorder.reader import iter_messages
-
-LAB = [sys.executable, "-m", "lab"]
-
-
-def _run(args, timeout=300):
-    return subprocess.run(LAB + args, capture_output=True, text=True, timeout=timeout)
 
 
 def _rig_variant(tmp_path: Path, name: str, edit) -> str:
@@ -34,13 +26,13 @@ def _without_lift(text: str) -> str:
     return text[:text.index("[sim.lift]")] + text[text.index("[sim.stewart]"):]
 
 
-def test_a_4x4x4_run_on_the_default_rig_uses_the_lift(tmp_path):
+def test_a_4x4x4_run_on_the_default_rig_uses_the_lift(lab, run_dir):
     """`--n 4` on the default rig (its borg_n is 3): the simulated world is the 4x4x4, the survey
     looks from lift heights (the rim tags from below the home height, 4D also from above), the
     graph calibrates the lift's axis with the rest, and every module is verified."""
-    out = tmp_path / "run"
-    r = _run(["run", "borg", "--n", "4", "--auto", "--quiet", "--modules", "6", "--no-rig-survey", "--speedup", "40",
-              "--out", str(out)])
+    out = run_dir
+    r = lab(["run", "borg", "--n", "4", "--auto", "--quiet", "--modules", "6", "--no-rig-survey", "--speedup", "40",
+             "--out", str(out)])
     assert r.returncode == 0, r.stdout + r.stderr
     s = json.loads((out / "summary.json").read_text())
     assert s["result"] == "completed" and s["structure"] == "borg:4" and s["steps"] == 6
@@ -58,18 +50,18 @@ def test_a_4x4x4_run_on_the_default_rig_uses_the_lift(tmp_path):
     assert {f"MOVE {h * 1000:.3f}".encode() for h in heights if h} <= moves, moves
 
 
-def test_modules_a_rig_without_the_lift_cannot_see_are_listed_before_anything_moves(tmp_path):
+def test_modules_a_rig_without_the_lift_cannot_see_are_listed_before_anything_moves(lab, tmp_path, run_dir):
     """(A lift kept short is the same story: tests/test_survey_lift.py.)"""
     rig = _rig_variant(tmp_path, "rig", _without_lift)
     # the dry run lists them, one line each, and refuses
-    r = _run(["run", "borg", "--n", "4", "--dry-run", "--rig", rig])
+    r = lab(["run", "borg", "--n", "4", "--dry-run", "--rig", rig])
     assert r.returncode == 2, r.stdout + r.stderr
     listed = [line for line in r.stdout.splitlines() if "no candidate view of rig 'sim' sees tag" in line]
     assert listed and all(line.strip().startswith("REFUSED: module ") for line in listed)
     assert any("module 99S " in line for line in listed), r.stdout          # top layer, face 1, z 2.07 m
     # a run refuses before it starts: the same lines on stderr, exit 2, no run directory left
-    out = tmp_path / "run"
-    r = _run(["run", "borg", "--n", "4", "--auto", "--rig", rig, "--out", str(out)])
+    out = run_dir
+    r = lab(["run", "borg", "--n", "4", "--auto", "--rig", rig, "--out", str(out)])
     assert r.returncode == 2, r.stdout + r.stderr
     err = r.stderr.splitlines()
     assert [line for line in err if line.startswith("unobservable: module ")] == \
@@ -77,6 +69,6 @@ def test_modules_a_rig_without_the_lift_cannot_see_are_listed_before_anything_mo
     assert err[-1].startswith("lab: error: rig 'sim' cannot observe") and "--allow-unobservable" in err[-1]
     assert not out.exists()
     # told to go on, the dry run warns instead
-    r = _run(["run", "borg", "--n", "4", "--dry-run", "--allow-unobservable", "--rig", rig])
+    r = lab(["run", "borg", "--n", "4", "--dry-run", "--allow-unobservable", "--rig", rig])
     assert r.returncode == 0, r.stdout + r.stderr
     assert sum("WARNING: module " in line for line in r.stdout.splitlines()) == len(listed)

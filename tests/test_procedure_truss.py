@@ -7,7 +7,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -16,12 +15,6 @@ import pytest
 
 from lab.core.recorder import topics
 from lab.core.recorder.reader import iter_messages, read_summary
-
-LAB = [sys.executable, "-m", "lab"]
-
-
-def _run(args, **kw):
-    return subprocess.run(LAB + args, capture_output=True, text=True, timeout=240, **kw)
 
 
 def _step_events(path):
@@ -34,9 +27,9 @@ def _scenario(tmp_path: Path, text: str) -> str:
     return str(p)
 
 
-def test_tetrahelix_mle_run_completes_and_logs_every_step(tmp_path):
-    out = tmp_path / "run"
-    r = _run(["run", "truss", "tetrahelix:6", "--auto", "--quiet", "--out", str(out)])
+def test_tetrahelix_mle_run_completes_and_logs_every_step(lab, run_dir):
+    out = run_dir
+    r = lab(["run", "truss", "tetrahelix:6", "--auto", "--quiet", "--out", str(out)])
     assert r.returncode == 0, r.stdout + r.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["result"] == "completed" and summary["estimator"] == "mle"
@@ -58,13 +51,13 @@ def test_tetrahelix_mle_run_completes_and_logs_every_step(tmp_path):
     assert read_summary(out / "run.mcap").stop.result == "completed"
 
 
-def test_mle_beats_open_loop_on_the_same_seed(tmp_path):
+def test_mle_beats_open_loop_on_the_same_seed(lab, tmp_path):
     sc = _scenario(tmp_path, "seed = 11\n[truss]\nsigma_length_m = 0.02\nsigma_measure_m = 0.001\n")
     rms = {}
     for est in ("mle", "open-loop"):
         out = tmp_path / est
-        r = _run(["run", "truss", "tetrahelix:8", "--auto", "--quiet", "--estimator", est, "--scenario", sc,
-                  "--out", str(out)])
+        r = lab(["run", "truss", "tetrahelix:8", "--auto", "--quiet", "--speedup", "40", "--estimator", est,
+                 "--scenario", sc, "--out", str(out)])
         assert r.returncode == 0, r.stdout + r.stderr
         rms[est] = json.loads((out / "summary.json").read_text())["rms_node_error_m"]
     assert rms["mle"] < rms["open-loop"]
@@ -84,10 +77,10 @@ def test_dry_run_moves_nothing(tmp_path):
         proc.close()
 
 
-def test_ctrl_c_stops_and_resume_completes(tmp_path):
-    out = tmp_path / "run"
-    p = subprocess.Popen(LAB + ["run", "truss", "tetrahelix:8", "--auto", "--quiet", "--speedup", "4", "--out", str(out)],
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+def test_ctrl_c_stops_and_resume_completes(lab, run_dir):
+    out = run_dir
+    p = lab.popen(["run", "truss", "tetrahelix:8", "--auto", "--quiet", "--speedup", "4", "--out", str(out)],
+                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.time() + 60
     ckpt = out / "checkpoint.json"
     while time.time() < deadline and not (ckpt.exists() and json.loads(ckpt.read_text())["steps_completed"] >= 3):
@@ -103,20 +96,20 @@ def test_ctrl_c_stops_and_resume_completes(tmp_path):
     stop = read_summary(out / "run.mcap").stop
     assert stop.result == "aborted"
 
-    r = _run(["resume", str(out), "--auto"])
+    r = lab(["resume", str(out), "--auto"])
     assert r.returncode == 0, r.stdout + r.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["result"] == "completed" and summary["steps"] == 8
     # the resumed log holds every step exactly once: the kept ones and the re-run rest
     assert _step_events(out / "run.mcap") == [(i, p) for i in range(8) for p in ("start", "end")]
     assert (out / "run.part1.mcap").exists()
-    assert _run(["resume", str(out)]).returncode == 2       # nothing left to resume
+    assert lab(["resume", str(out)]).returncode == 2       # nothing left to resume
 
 
-def test_sigkill_loses_no_completed_step(tmp_path):
-    out = tmp_path / "run"
-    p = subprocess.Popen(LAB + ["run", "truss", "tetrahelix:8", "--auto", "--quiet", "--speedup", "1", "--out", str(out)],
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+def test_sigkill_loses_no_completed_step(lab, run_dir):
+    out = run_dir
+    p = lab.popen(["run", "truss", "tetrahelix:8", "--auto", "--quiet", "--speedup", "1", "--out", str(out)],
+                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ckpt = out / "checkpoint.json"
     deadline = time.time() + 60
     while time.time() < deadline and not (ckpt.exists() and json.loads(ckpt.read_text())["steps_completed"] >= 3):
@@ -128,10 +121,10 @@ def test_sigkill_loses_no_completed_step(tmp_path):
     assert ends[:done] == list(range(done))
 
 
-def test_ipjr_fault_fails_the_run_with_a_clear_reason(tmp_path):
+def test_ipjr_fault_fails_the_run_with_a_clear_reason(lab, run_dir, tmp_path):
     sc = _scenario(tmp_path, '[[device.fault]]\ndevice = "ipjr1"\nkind = "stuck"\nafter_commands = 0\ncount = 0\n')
-    out = tmp_path / "run"
-    r = _run(["run", "truss", "tetrahelix:6", "--auto", "--quiet", "--scenario", sc, "--out", str(out)])
+    out = run_dir
+    r = lab(["run", "truss", "tetrahelix:6", "--auto", "--quiet", "--scenario", sc, "--out", str(out)])
     assert r.returncode == 1, r.stdout + r.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert summary["result"] == "failed"
@@ -139,9 +132,9 @@ def test_ipjr_fault_fails_the_run_with_a_clear_reason(tmp_path):
     assert read_summary(out / "run.mcap").stop.result == "failed"
 
 
-def test_bad_inputs_are_refused_in_one_line(tmp_path):
-    r = _run(["run", "truss", "nonsense:3", "--auto", "--out", str(tmp_path / "x")])
+def test_bad_inputs_are_refused_in_one_line(lab, tmp_path):
+    r = lab(["run", "truss", "nonsense:3", "--auto", "--out", str(tmp_path / "x")])
     assert r.returncode == 2 and "nonsense" in r.stderr and "Traceback" not in r.stderr
     bad = _scenario(tmp_path, "seed = -1\n")
-    r = _run(["run", "truss", "tetrahelix:6", "--auto", "--scenario", bad, "--out", str(tmp_path / "y")])
+    r = lab(["run", "truss", "tetrahelix:6", "--auto", "--scenario", bad, "--out", str(tmp_path / "y")])
     assert r.returncode == 2 and "seed" in r.stderr and "Traceback" not in r.stderr

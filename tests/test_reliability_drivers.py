@@ -25,7 +25,6 @@ from drivers.turntable import Turntable
 from lab.core.comms import MemoryComms
 from lab.core.config import load_rig
 
-LAB = [sys.executable, "-m", "lab"]
 
 
 def _stewart(url: str) -> Stewart:
@@ -42,13 +41,11 @@ def test_a_pose_that_is_no_pose_never_reaches_the_wire(pose):
         assert not st.moved
 
 
-def test_ik_calls_a_wound_up_or_nan_pose_unreachable():
-    r = subprocess.run(LAB + ["stewart", "ik", "0", "0", "0", "0", "0", "1e12", "--json"], capture_output=True,
-                       text=True, timeout=60)
+def test_ik_calls_a_wound_up_or_nan_pose_unreachable(lab):
+    r = lab(["stewart", "ik", "0", "0", "0", "0", "0", "1e12", "--json"], timeout=60)
     doc = json.loads(r.stdout)
     assert doc["reachable"] is False and "yaw" in doc["reason"]
-    r = subprocess.run(LAB + ["stewart", "ik", "0", "0", "0", "nan", "0", "0", "--json"], capture_output=True,
-                       text=True, timeout=60)
+    r = lab(["stewart", "ik", "0", "0", "0", "nan", "0", "0", "--json"], timeout=60)
     assert r.returncode == 2 and "finite" in r.stderr       # refused in one line by the CLI
 
 

@@ -17,12 +17,7 @@ import pytest
 from lab.core.recorder import topics
 from lab.core.recorder.reader import iter_messages, read_summary
 
-LAB = [sys.executable, "-m", "lab"]
 TRUSS = ["run", "truss", "tetrahelix:6", "--auto", "--quiet", "--speedup", "20"]
-
-
-def _run(args, timeout=240):
-    return subprocess.run(LAB + args, capture_output=True, text=True, timeout=timeout)
 
 
 def _ends(path: Path) -> list[int]:
@@ -50,27 +45,35 @@ def _one_line_error(r) -> str:
 
 
 @pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> dict:
+def reference(lab, tmp_path_factory) -> dict:
     out = tmp_path_factory.mktemp("ref") / "run"
-    r = _run(TRUSS + ["--out", str(out)])
+    r = lab(TRUSS + ["--out", str(out)])
     assert r.returncode == 0, r.stdout + r.stderr
     return json.loads((out / "summary.json").read_text())
 
 
-@pytest.fixture()
-def interrupted(tmp_path) -> Path:
-    """A truss run killed (SIGKILL) after 3 of its 6 steps."""
-    out = tmp_path / "run"
-    p = subprocess.Popen(LAB + TRUSS + ["--speedup", "2", "--out", str(out)], stdout=subprocess.DEVNULL,
-                         stderr=subprocess.DEVNULL)
+@pytest.fixture(scope="module")
+def killed(lab, tmp_path_factory) -> Path:
+    """A truss run killed (SIGKILL) after 3 of its 6 steps, made once: five tests start from it."""
+    out = tmp_path_factory.mktemp("killed") / "run"
+    p = lab.popen(TRUSS + ["--speedup", "2", "--out", str(out)], stdout=subprocess.DEVNULL,
+                  stderr=subprocess.DEVNULL)
     _wait_steps(out, 3)
     os.kill(p.pid, signal.SIGKILL)
     p.wait(timeout=10)
     return out
 
 
-def test_killed_and_resumed_truss_run_equals_the_uninterrupted_one(interrupted, reference):
-    r = _run(["resume", str(interrupted), "--auto"])
+@pytest.fixture()
+def interrupted(killed, run_dir) -> Path:
+    """A truss run killed (SIGKILL) after 3 of its 6 steps: a copy of `killed` of the test's own,
+    which it resumes, cuts or edits."""
+    shutil.copytree(killed, run_dir)
+    return run_dir
+
+
+def test_killed_and_resumed_truss_run_equals_the_uninterrupted_one(lab, interrupted, reference):
+    r = lab(["resume", str(interrupted), "--auto"])
     assert r.returncode == 0, r.stdout + r.stderr
     s = json.loads((interrupted / "summary.json").read_text())
     assert s["result"] == "completed"
@@ -79,7 +82,7 @@ def test_killed_and_resumed_truss_run_equals_the_uninterrupted_one(interrupted, 
     assert _ends(interrupted / "run.mcap") == list(range(6))
 
 
-def test_a_log_cut_by_a_kill_during_resume_copy_is_repaired_from_the_parts(interrupted):
+def test_a_log_cut_by_a_kill_during_resume_copy_is_repaired_from_the_parts(lab, interrupted):
     """The issue's case: run.part1.mcap intact, run.mcap cut at 40 % (a kill during the copy of an
     old-style resume).  Resume must take every completed step from a part that holds it."""
     done = json.loads((interrupted / "checkpoint.json").read_text())["steps_completed"]
@@ -87,7 +90,7 @@ def test_a_log_cut_by_a_kill_during_resume_copy_is_repaired_from_the_parts(inter
     os.replace(full, interrupted / "run.part1.mcap")
     data = (interrupted / "run.part1.mcap").read_bytes()
     full.write_bytes(data[: int(0.4 * len(data))])
-    r = _run(["resume", str(interrupted), "--auto"])
+    r = lab(["resume", str(interrupted), "--auto"])
     assert r.returncode == 0, r.stdout + r.stderr
     assert json.loads((interrupted / "summary.json").read_text())["result"] == "completed"
     assert _ends(interrupted / "run.mcap") == list(range(6))
@@ -95,64 +98,64 @@ def test_a_log_cut_by_a_kill_during_resume_copy_is_repaired_from_the_parts(inter
     assert read_summary(interrupted / "run.mcap").stop.steps_completed == 6
 
 
-def test_a_missing_log_is_refused_not_papered_over(interrupted):
+def test_a_missing_log_is_refused_not_papered_over(lab, interrupted):
     (interrupted / "run.mcap").unlink()
-    line = _one_line_error(_run(["resume", str(interrupted), "--auto"]))
+    line = _one_line_error(lab(["resume", str(interrupted), "--auto"]))
     assert "lack" in line and "checkpoint.json" in line
     assert not (interrupted / "run.part1.mcap").exists()       # nothing was touched
 
 
-def test_a_checkpoint_claiming_more_than_the_plan_is_refused(interrupted):
+def test_a_checkpoint_claiming_more_than_the_plan_is_refused(lab, interrupted):
     ck = interrupted / "checkpoint.json"
     doc = json.loads(ck.read_text())
     doc["steps_completed"] = 99
     ck.write_text(json.dumps(doc))
-    line = _one_line_error(_run(["resume", str(interrupted), "--auto"]))
+    line = _one_line_error(lab(["resume", str(interrupted), "--auto"]))
     assert "steps_completed 99" in line
     doc["steps_completed"] = 5          # within the plan but beyond the logs (3 or 4 steps)
     ck.write_text(json.dumps(doc))
-    line = _one_line_error(_run(["resume", str(interrupted), "--auto"]))
+    line = _one_line_error(lab(["resume", str(interrupted), "--auto"]))
     assert "lack" in line
 
 
 @pytest.mark.parametrize("name,text", [("run.json", "{not json"), ("checkpoint.json", "\x00\x01garbage"),
                                        ("run.json", "[1, 2]"), ("checkpoint.json", '{"steps_completed": "three"}')])
-def test_garbage_run_files_are_one_line_errors(tmp_path, name, text):
+def test_garbage_run_files_are_one_line_errors(lab, tmp_path, name, text):
     d = tmp_path / "run"
     d.mkdir()
     (d / "run.json").write_text(json.dumps({"procedure": "truss", "params": {"name": "tetrahelix:6"}}))
     (d / name).write_text(text)
-    line = _one_line_error(_run(["resume", str(d), "--auto"]))
+    line = _one_line_error(lab(["resume", str(d), "--auto"]))
     assert name in line
 
 
-def test_out_is_checked_and_an_existing_run_needs_replace(tmp_path, reference):
+def test_out_is_checked_and_an_existing_run_needs_replace(lab, run_dir, tmp_path, reference):
     f = tmp_path / "afile"
     f.write_text("x")
-    assert "is a file" in _one_line_error(_run(TRUSS + ["--out", str(f)]))
-    assert "cannot create" in _one_line_error(_run(TRUSS + ["--out", str(f / "sub")]))
+    assert "is a file" in _one_line_error(lab(TRUSS + ["--out", str(f)]))
+    assert "cannot create" in _one_line_error(lab(TRUSS + ["--out", str(f / "sub")]))
     if os.geteuid() != 0:
         ro = tmp_path / "ro"
         ro.mkdir(mode=0o500)
-        assert "ro" in _one_line_error(_run(TRUSS + ["--out", str(ro / "x")]))
-    out = tmp_path / "run"
-    assert _run(TRUSS + ["--out", str(out)]).returncode == 0
-    line = _one_line_error(_run(TRUSS + ["--out", str(out)]))
+        assert "ro" in _one_line_error(lab(TRUSS + ["--out", str(ro / "x")]))
+    out = run_dir
+    assert lab(TRUSS + ["--out", str(out)]).returncode == 0
+    line = _one_line_error(lab(TRUSS + ["--out", str(out)]))
     assert "--replace" in line
-    r = _run(TRUSS + ["--out", str(out), "--replace"])
+    r = lab(TRUSS + ["--out", str(out), "--replace"])
     assert r.returncode == 0, r.stderr
     assert json.loads((out / "summary.json").read_text())["rms_node_error_m"] == reference["rms_node_error_m"]
 
 
-def test_two_runs_on_one_out_directory_one_is_refused(tmp_path):
-    out = tmp_path / "run"
-    p = subprocess.Popen(LAB + TRUSS + ["--speedup", "2", "--out", str(out)], stdout=subprocess.DEVNULL,
-                         stderr=subprocess.DEVNULL)
+def test_two_runs_on_one_out_directory_one_is_refused(lab, run_dir):
+    out = run_dir
+    p = lab.popen(TRUSS + ["--speedup", "2", "--out", str(out)], stdout=subprocess.DEVNULL,
+                  stderr=subprocess.DEVNULL)
     try:
         _wait_steps(out, 1)
-        line = _one_line_error(_run(TRUSS + ["--out", str(out), "--replace"]))
+        line = _one_line_error(lab(TRUSS + ["--out", str(out), "--replace"]))
         assert "in use by pid" in line and str(p.pid) in line
-        line = _one_line_error(_run(["resume", str(out), "--auto"]))
+        line = _one_line_error(lab(["resume", str(out), "--auto"]))
         assert "in use by pid" in line
     finally:
         p.send_signal(signal.SIGINT)
@@ -160,7 +163,7 @@ def test_two_runs_on_one_out_directory_one_is_refused(tmp_path):
     assert json.loads((out / "run.json").read_text())["argv"][-1] == str(out)
 
 
-def test_a_second_run_on_a_busy_bench_moves_and_stops_nothing(tmp_path):
+def test_a_second_run_on_a_busy_bench_moves_and_stops_nothing(lab, tmp_path):
     rig = tmp_path / "rig.toml"
     text = (Path(__file__).resolve().parents[1] / "lab" / "rigs" / "sim.toml").read_text()
     rig.write_text(text.split("\n[sim]")[0])            # the same devices, driven as hardware
@@ -171,7 +174,7 @@ def test_a_second_run_on_a_busy_bench_moves_and_stops_nothing(tmp_path):
         "print('held', flush=True); time.sleep(60)\n")], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
-        r = _run(["run", "borg", "--rig", str(rig), "--auto", "--quiet", "--out", str(tmp_path / "second")])
+        r = lab(["run", "borg", "--rig", str(rig), "--auto", "--quiet", "--out", str(tmp_path / "second")])
         line = _one_line_error(r)
         assert "turntable" in line and "first-run" in line and f"pid {holder.pid}" in line
         assert "nothing was moved or stopped" in line
@@ -180,13 +183,13 @@ def test_a_second_run_on_a_busy_bench_moves_and_stops_nothing(tmp_path):
         holder.wait()
 
 
-def test_repeated_interrupts_end_like_one(tmp_path):
+def test_repeated_interrupts_end_like_one(lab, tmp_path):
     """SIGINT, then SIGINT and SIGTERM again during the clean-up: exit 3, every moved device
     stopped, the stop record and summary.json say the same, no half-written file left."""
     for gap in (0.004, 0.05):
         out = tmp_path / f"run{gap}"
-        p = subprocess.Popen(LAB + TRUSS + ["--speedup", "2", "--out", str(out)], stdout=subprocess.PIPE,
-                             stderr=subprocess.STDOUT, text=True)
+        p = lab.popen(TRUSS + ["--speedup", "2", "--out", str(out)], stdout=subprocess.PIPE,
+                      stderr=subprocess.STDOUT, text=True)
         _wait_steps(out, 2)
         p.send_signal(signal.SIGINT)
         time.sleep(gap)
@@ -200,7 +203,7 @@ def test_repeated_interrupts_end_like_one(tmp_path):
         assert s["result"] == stop.result == "aborted"
         assert "stopped" in s["reason"] and s["reason"] == stop.reason
         assert not list(out.glob("*.tmp"))
-        r = _run(["resume", str(out), "--auto"])
+        r = lab(["resume", str(out), "--auto"])
         assert r.returncode == 0, r.stdout + r.stderr
         assert _ends(out / "run.mcap") == list(range(6))
 
@@ -267,13 +270,13 @@ def test_signals_during_the_clean_up_cannot_skip_a_stop(tmp_path):
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler   # handlers given back
 
 
-def test_a_resume_killed_during_its_copy_leaves_a_half_copy_the_next_resume_drops(interrupted):
+def test_a_resume_killed_during_its_copy_leaves_a_half_copy_the_next_resume_drops(lab, interrupted):
     """What a kill during the (new) copy leaves: the old log already moved to run.part1.mcap, a
     half-written run.resume.mcap, no run.mcap.  The next resume must complete from the part."""
     os.replace(interrupted / "run.mcap", interrupted / "run.part1.mcap")
     data = (interrupted / "run.part1.mcap").read_bytes()
     (interrupted / "run.resume.mcap").write_bytes(data[: len(data) // 3])
-    r = _run(["resume", str(interrupted), "--auto"])
+    r = lab(["resume", str(interrupted), "--auto"])
     assert r.returncode == 0, r.stdout + r.stderr
     assert not (interrupted / "run.resume.mcap").exists()
     assert _ends(interrupted / "run.mcap") == list(range(6))

@@ -4,7 +4,6 @@ recording id; a saved layout (blueprint) travels with the recording."""
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -22,15 +21,6 @@ from lab.core.review import review, rrd_entity_paths
 from lab.core.viewer import check_connect_url, choose_mode, has_display, rerun_command
 from test_review import _write_run
 
-LAB = [sys.executable, "-m", "lab"]
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _headless_env() -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
-
 
 def _view_names(rrd: Path) -> list[set[str]]:
     """The view names of each blueprint stored in an .rrd."""
@@ -46,11 +36,11 @@ def _view_names(rrd: Path) -> list[set[str]]:
     return out
 
 
-def test_without_a_display_review_serves_the_web_viewer_on_loopback_and_stops_on_ctrl_c(tmp_path: Path) -> None:
+def test_without_a_display_review_serves_the_web_viewer_on_loopback_and_stops_on_ctrl_c(lab, tmp_path: Path) -> None:
     run = tmp_path / "run.mcap"
     _write_run(run)
-    proc = subprocess.Popen([*LAB, "review", str(run)], env=_headless_env(), cwd=tmp_path, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = lab.popen(["review", str(run)], env=lab.env(drop=lab.NO_DISPLAY), cwd=tmp_path, text=True,
+                     stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         lines: list[str] = []
         deadline = time.monotonic() + 90
@@ -73,7 +63,8 @@ def test_without_a_display_review_serves_the_web_viewer_on_loopback_and_stops_on
         review(run, tmp_path / "direct.rrd")
         want = rrd_entity_paths(tmp_path / "direct.rrd")
         client = subprocess.Popen([*rerun_command(), "--bind", "127.0.0.1", "--connect", grpc_url, "--save", str(got)],
-                                  env=_headless_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                  env=lab.env(drop=lab.NO_DISPLAY), stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL)
         have: set[str] = set()
         try:   # the client saves for as long as the proxy serves: wait for the whole run, then stop it
             deadline = time.monotonic() + 60
@@ -98,12 +89,11 @@ def test_without_a_display_review_serves_the_web_viewer_on_loopback_and_stops_on
             proc.wait()
 
 
-def test_without_a_display_save_returns_promptly(tmp_path: Path) -> None:
+def test_without_a_display_save_returns_promptly(lab, tmp_path: Path) -> None:
     run, rrd = tmp_path / "run.mcap", tmp_path / "out" / "run.rrd"
     rrd.parent.mkdir()
     _write_run(run)
-    r = subprocess.run([*LAB, "review", str(run), "--save", str(rrd)], env=_headless_env(), capture_output=True,
-                       text=True, timeout=120)
+    r = lab(["review", str(run), "--save", str(rrd)], env=lab.env(drop=lab.NO_DISPLAY), timeout=120)
     assert r.returncode == 0, r.stderr
     assert f"wrote {rrd}" in r.stdout and rrd.stat().st_size > 0
 

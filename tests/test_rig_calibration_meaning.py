@@ -10,16 +10,13 @@ turntable steps, devices 100x faster), so the writer's own output is held to the
 from __future__ import annotations
 
 import copy
-import io
 import json
 import shutil
-from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from lab.cli import main
 from lab.core.config import default_rig_path
 from lab.core.rig_calibration_check import MAX_CONDITION, check_covariance
 from lab.core.errors import UserError
@@ -27,21 +24,9 @@ from lab.core.errors import UserError
 FAST = ["--auto", "--quiet", "--speedup", "100"]
 
 
-def _run(*argv: str) -> tuple[int, str, str]:
-    so, se = io.StringIO(), io.StringIO()
-    with redirect_stdout(so), redirect_stderr(se):
-        rc = main(list(argv))
-    return rc, so.getvalue(), se.getvalue()
-
-
 @pytest.fixture(scope="module")
-def good(tmp_path_factory) -> dict:
-    d = tmp_path_factory.mktemp("meaning")
-    out = d / "rig_calibration.json"
-    rc, _, err = _run("calibrate", "rig", "--auto", "--speedup", "100", "--angle-step-deg", "45", "--out", str(out),
-                      "--run-dir", str(d / "survey"))
-    assert rc == 0, err
-    return json.loads(out.read_text())
+def good(rig_survey) -> dict:
+    return json.loads(rig_survey["out"].read_text())
 
 
 def _rig_with(tmp_path: Path, data: dict) -> Path:
@@ -133,17 +118,17 @@ def _ill(J: np.ndarray, cond: float) -> np.ndarray:
     return R * np.outer(s, s)
 
 
-def test_the_surveys_own_file_is_valid(tmp_path, good):
-    rc, out, err = _run("rig", "check", str(_rig_with(tmp_path, good)))
+def test_the_surveys_own_file_is_valid(lab, tmp_path, good):
+    rc, out, err = lab.main("rig", "check", str(_rig_with(tmp_path, good)))
     assert rc == 0, err
     assert "valid" in out
 
 
 @pytest.mark.parametrize("case, mutate, names", BAD, ids=[b[0] for b in BAD])
-def test_lab_rig_check_refuses_in_one_line(tmp_path, good, case, mutate, names):
+def test_lab_rig_check_refuses_in_one_line(lab, tmp_path, good, case, mutate, names):
     data = copy.deepcopy(good)
     mutate(data)
-    rc, out, err = _run("rig", "check", str(_rig_with(tmp_path, data)))
+    rc, out, err = lab.main("rig", "check", str(_rig_with(tmp_path, data)))
     assert rc == 2, (case, out)
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "cal.json" in lines[0] and names in lines[0], (case, err)
@@ -152,24 +137,25 @@ def test_lab_rig_check_refuses_in_one_line(tmp_path, good, case, mutate, names):
 
 @pytest.mark.parametrize("case, mutate, names", [BAD[0], BAD[5], BAD[8], BAD[9], BAD[13]],
                          ids=[BAD[k][0] for k in (0, 5, 8, 9, 13)])
-def test_lab_run_borg_refuses_before_anything_moves(tmp_path, good, case, mutate, names):
+def test_lab_run_borg_refuses_before_anything_moves(lab, tmp_path, good, case, mutate, names):
     data = copy.deepcopy(good)
     mutate(data)
     cal = tmp_path / "c.json"
     cal.write_text(json.dumps(data))
     out = tmp_path / "run"
-    rc, _, err = _run("run", "borg", *FAST, "--modules", "1", "--calibration", str(cal), "--out", str(out))
+    rc, _, err = lab.main("run", "borg", *FAST, "--modules", "1", "--calibration", str(cal), "--out", str(out))
     assert rc == 2 and names in err, err
     assert not out.exists()                     # refused before the run began: nothing moved, nothing written
 
 
-def test_a_calibration_that_disagrees_with_the_camera_stops_the_run_naming_the_rig(tmp_path, good):
+def test_a_calibration_that_disagrees_with_the_camera_stops_the_run_naming_the_rig(lab, tmp_path, good):
     """Within every bound, but the Stewart base 15 cm off where it is: the rim tags show it."""
     data = copy.deepcopy(good)
     data["world_T_base"]["xyz_m"][1] += 0.15
     cal = tmp_path / "c.json"
     cal.write_text(json.dumps(data))
-    rc, out, err = _run("run", "borg", *FAST, "--modules", "2", "--calibration", str(cal), "--out", str(tmp_path / "r"))
+    rc, out, err = lab.main("run", "borg", *FAST, "--modules", "2", "--calibration", str(cal), "--out",
+                            str(tmp_path / "r"))
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     assert rc == 3 and summary["result"] == "aborted"
     assert "disagrees with the rig calibration" in summary["reason"] and "not the structure" in summary["reason"]
@@ -177,10 +163,11 @@ def test_a_calibration_that_disagrees_with_the_camera_stops_the_run_naming_the_r
     assert summary["modules"] == []            # no module blamed for it
 
 
-def test_the_same_run_with_the_good_file_completes(tmp_path, good):
+def test_the_same_run_with_the_good_file_completes(lab, tmp_path, good):
     cal = tmp_path / "c.json"
     cal.write_text(json.dumps(good))
-    rc, out, err = _run("run", "borg", *FAST, "--modules", "2", "--calibration", str(cal), "--out", str(tmp_path / "r"))
+    rc, out, err = lab.main("run", "borg", *FAST, "--modules", "2", "--calibration", str(cal), "--out",
+                            str(tmp_path / "r"))
     assert rc == 0, err
     summary = json.loads((tmp_path / "r" / "summary.json").read_text())
     assert [m["verdict"] for m in summary["modules"]] == ["ok", "ok"]

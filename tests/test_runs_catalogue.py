@@ -8,7 +8,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -17,39 +16,31 @@ import pytest
 from lab.cli import main as lab_main
 from lab.core.runs import runs_root
 
-LAB = [sys.executable, "-m", "lab"]
-ROOT = Path(__file__).resolve().parents[1]
 
 
-def _env(**extra: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k not in ("LAB_RUNS", "LAB_CONFIG")}
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    env.update(extra)
-    return env
-
-
-def _lab(args: list[str], env: dict[str, str], cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(LAB + args, capture_output=True, text=True, timeout=600, env=env, cwd=cwd)
+def _env(lab, **extra: str) -> dict[str, str]:
+    # where a run goes without --out is what this file tests: not the runs root of whoever runs it
+    return lab.env(drop=("LAB_RUNS", "LAB_CONFIG"), **extra)
 
 
 @pytest.fixture(scope="module")
-def root(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def root(lab, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Three runs under one root: a truss run written there by $LAB_RUNS (no --out), a short BORG
     run, and a BORG run killed (SIGKILL) after its first step."""
     base = tmp_path_factory.mktemp("catalogue")
     root = base / "runs"
-    env = _env(LAB_RUNS=str(root))
-    r = _lab(["run", "truss", "tetrahelix:6", "--auto", "--quiet", "--speedup", "40"], env, base)
+    env = _env(lab, LAB_RUNS=str(root))
+    r = lab(["run", "truss", "tetrahelix:6", "--auto", "--quiet", "--speedup", "40"], env=env, cwd=base, timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
     # the ideal camera: one estimator update per step (on the realistic camera without a survey the
     # first modules are `uncertain` and take further rounds of views, each an update)
     ideal = Path(__file__).resolve().parents[1] / "docs" / "scenarios" / "ideal_camera.toml"
-    r = _lab(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--modules", "2", "--speedup", "40",
-              "--scenario", str(ideal), "--out", str(root / "borg-short")], env, base)
+    r = lab(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--modules", "2", "--speedup", "40",
+             "--scenario", str(ideal), "--out", str(root / "borg-short")], env=env, cwd=base, timeout=600)
     assert r.returncode == 0, r.stdout + r.stderr
     killed = root / "bench" / "borg-killed"          # one level deeper: found too
-    p = subprocess.Popen(LAB + ["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--out", str(killed)],
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=base)
+    p = lab.popen(["run", "borg", "--auto", "--quiet", "--no-rig-survey", "--speedup", "40", "--out", str(killed)],
+                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=base)
     ckpt = killed / "checkpoint.json"
     deadline = time.time() + 120
     while time.time() < deadline and not (ckpt.exists() and json.loads(ckpt.read_text())["steps_completed"] >= 1):
@@ -59,8 +50,8 @@ def root(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root
 
 
-def test_the_catalogue_lists_every_run_with_what_it_was(root: Path) -> None:
-    r = _lab(["runs", "--root", str(root), "--json"], _env(), root)
+def test_the_catalogue_lists_every_run_with_what_it_was(lab, root: Path) -> None:
+    r = lab(["runs", "--root", str(root), "--json"], env=_env(lab), cwd=root)
     assert r.returncode == 0, r.stderr
     runs = {e["id"]: e for e in json.loads(r.stdout)["runs"]}
     assert len(runs) == 3, sorted(runs)
@@ -75,7 +66,7 @@ def test_the_catalogue_lists_every_run_with_what_it_was(root: Path) -> None:
     for e in runs.values():
         assert e["start"].startswith("20") and e["duration_s"] is not None
     # the plain listing: a header, one line per run (oldest first), a count
-    text = _lab(["runs", "--root", str(root)], _env(), root).stdout.splitlines()
+    text = lab(["runs", "--root", str(root)], env=_env(lab), cwd=root).stdout.splitlines()
     assert text[0].split()[:4] == ["id", "procedure", "rig", "start"]
     assert [ln.split()[0] for ln in text[1:4]] == [truss["id"], "borg-short", os.path.join("bench", "borg-killed")]
     assert "killed" in text[3] and text[4].startswith("3 runs under ")
@@ -95,28 +86,28 @@ def test_a_run_still_going_is_running_not_killed(root: Path, tmp_path: Path) -> 
     assert read_run(going).result == "killed"
 
 
-def test_show_prints_the_summary_and_the_verdict_table(root: Path) -> None:
-    r = _lab(["runs", "show", "borg-short", "--root", str(root)], _env(), root)
+def test_show_prints_the_summary_and_the_verdict_table(lab, root: Path) -> None:
+    r = lab(["runs", "show", "borg-short", "--root", str(root)], env=_env(lab), cwd=root)
     assert r.returncode == 0, r.stderr
     out = r.stdout
     assert "procedure borg" in out and "result completed" in out and "command: lab run borg" in out
     assert "dev mm" in out and "tol mm/deg" in out and out.rstrip().splitlines()[-1].startswith("dev: ")
-    r = _lab(["runs", "show", str(root / "bench" / "borg-killed" / "run.mcap")], _env(), root)  # by path
+    r = lab(["runs", "show", str(root / "bench" / "borg-killed" / "run.mcap")], env=_env(lab), cwd=root)  # by path
     assert r.returncode == 0 and "result killed" in r.stdout and "1P " in r.stdout
     # the default root from $LAB_RUNS
-    r = _lab(["runs", "show", "borg-short"], _env(LAB_RUNS=str(root)), root.parent)
+    r = lab(["runs", "show", "borg-short"], env=_env(lab, LAB_RUNS=str(root)), cwd=root.parent)
     assert r.returncode == 0 and "result completed" in r.stdout
 
 
-def test_show_timings_reads_the_runs_metrics(root: Path) -> None:
+def test_show_timings_reads_the_runs_metrics(lab, root: Path) -> None:
     """`--timings`: each metric of run.mcap once, the BORG step's estimator time a value per step."""
-    r = _lab(["runs", "show", "borg-short", "--root", str(root), "--timings"], _env(), root)
+    r = lab(["runs", "show", "borg-short", "--root", str(root), "--timings"], env=_env(lab), cwd=root)
     assert r.returncode == 0, r.stderr
     lines = r.stdout.splitlines()
     head = lines.index(next(line for line in lines if line.startswith("metric ")))
     rows = {line.split()[0]: line.split() for line in lines[head + 1:]}
     assert rows["slam/update_s"][1] == "2" and rows["slam/update_s"][3] == "ms"
-    r = _lab(["runs", "show", "borg-short", "--root", str(root), "--timings", "--json"], _env(), root)
+    r = lab(["runs", "show", "borg-short", "--root", str(root), "--timings", "--json"], env=_env(lab), cwd=root)
     t = {m["name"]: m for m in json.loads(r.stdout)["timings"]}
     step = t["slam/update_s"]
     assert step["unit"] == "s" and step["count"] == 2 and 0 < step["median"] <= step["p90"] <= step["max"]

@@ -8,7 +8,6 @@ import re
 import signal
 import socket
 import subprocess
-import sys
 import time
 import urllib.request
 from pathlib import Path
@@ -45,10 +44,10 @@ def rig_on_free_ports(tmp_path: Path, **replace: str) -> Path:
     return path
 
 
-def test_lab_sim_serves_every_device_until_ctrl_c(tmp_path):
+def test_lab_sim_serves_every_device_until_ctrl_c(lab, tmp_path):
     rig = rig_on_free_ports(tmp_path)
-    proc = subprocess.Popen([sys.executable, "-m", "lab", "sim", "--rig", str(rig), "--duration", "60"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = lab.popen(["sim", "--rig", str(rig), "--duration", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                     text=True)
     try:
         lines = []
         deadline = time.monotonic() + 20
@@ -73,8 +72,7 @@ def test_lab_sim_serves_every_device_until_ctrl_c(tmp_path):
         with urllib.request.urlopen(urls["ipjr1"] + "/volts", timeout=2) as r:
             assert set(json.loads(r.read())) == {"volts"}
         # and lab devices check, from another process, sees the running simulators
-        check = subprocess.run([sys.executable, "-m", "lab", "devices", "check", "--rig", str(rig), "--json"],
-                               capture_output=True, text=True, timeout=60)
+        check = lab(["devices", "check", "--rig", str(rig), "--json"], timeout=60)
         report = json.loads(check.stdout)
         assert check.returncode == 0 and report["simulator"] == "external"
         assert all(d["ok"] for d in report["devices"]), report

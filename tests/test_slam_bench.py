@@ -8,8 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -167,12 +165,10 @@ def test_bench_refuses_bad_counts(tmp_path):
         bench_slam.run(_args(tmp_path, literal_powell=-1))
 
 
-def test_lab_bench_slam_is_on_the_command_line():
-    out = subprocess.run([sys.executable, "-m", "lab", "bench", "slam", "--help"], capture_output=True, text=True,
-                         timeout=60)
+def test_lab_bench_slam_is_on_the_command_line(lab):
+    out = lab(["bench", "slam", "--help"], timeout=60)
     assert out.returncode == 0 and "--quick" in out.stdout and "--only" in out.stdout
-    bad = subprocess.run([sys.executable, "-m", "lab", "bench", "slam", "--trials", "0", "--out", "/tmp/lab-test-slam"],
-                         capture_output=True, text=True, timeout=60)
+    bad = lab(["bench", "slam", "--trials", "0", "--out", "/tmp/lab-test-slam"], timeout=60)
     assert bad.returncode == 2 and "--trials must be at least 1" in bad.stderr
 
 

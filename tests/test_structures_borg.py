@@ -1,8 +1,6 @@
 """The BORG design model: Table 1 of the SF-GraphSLAM paper, counts for other N, tag geometry."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -125,9 +123,8 @@ def test_bad_n_is_refused():
         build_borg(100)      # a size no turntable carries: refused, not built for minutes
 
 
-def test_cli_json_round_trip():
-    out = subprocess.run([sys.executable, "-m", "lab", "structure", "borg", "--n", "3", "--json"],
-                         check=True, capture_output=True, text=True).stdout
+def test_cli_json_round_trip(lab):
+    out = lab(["structure", "borg", "--n", "3", "--json"], check=True).stdout
     data = json.loads(out)
     assert {"modules", "tags", "nodes", "edges"} <= set(data)
     assert len(data["tags"]) == 48 and len(data["modules"]) == 27 and len(data["nodes"]) == 64
