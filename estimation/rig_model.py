@@ -309,6 +309,13 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     lens_basis = None if distortion is None else np.asarray(distortion[1], float)
 
     local_rows = np.repeat(local, 2, axis=0)             # (8, 3): each row's corner, for the scale
+    if fixed_K is not None:
+        error = _fixed_corner_error(camera_key, tag_key, meas, local, fixed_K, scale_key,
+                                    None if distortion is None else (distortion[0], lens_basis))
+        keys = [camera_key, tag_key] + ([] if scale_key is None else [scale_key])
+        if distortion is not None:
+            keys.append(distortion[0])
+        return gtsam.CustomFactor(noise, keys, error)
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
         k = 1.0 + float(values.atVector(scale_key)[0]) if scale_key is not None else 1.0
@@ -337,6 +344,59 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     if distortion is not None:
         keys.append(distortion[0])
     return gtsam.CustomFactor(noise, keys, error)
+
+
+def _fixed_corner_error(camera_key: int, tag_key: int, meas: np.ndarray, local: np.ndarray, cal: np.ndarray,
+                        scale_key: int | None, lens: tuple[int, np.ndarray] | None):
+    """The corner factor's error function with the intrinsics fixed (a run's graph, the bound):
+    the same error and Jacobians as `project_corners`, in as few numpy calls as the algebra
+    allows.  GTSAM calls it back once per corner factor per relinearisation, and numpy's fixed cost
+    per call on 4-row arrays, not the arithmetic, is what such a callback spends its time on
+    (32 us against 54 us a linearisation).  A corner behind the camera takes `project_corners`'s
+    path (a large flat error and no gradient)."""
+    fx, fy, sk, u0, v0 = (float(c) for c in cal)
+    to_px = np.array([[fx, 0.0], [sk, fy]])            # (x, y) @ to_px = (fx x + sk y, fy y)
+    mix = np.array([[fx, sk], [0.0, fy]])              # the same on a corner's (d x, d y) rows
+    offset = np.array([u0, v0]) - meas                  # (4, 2)
+    local_rows = np.repeat(local, 2, axis=0)
+    zeros = np.zeros(len(local))
+    lens_key, minus_basis = (None, None) if lens is None else (lens[0], -lens[1])
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
+        world_T_camera, world_T_tag = values.atPose3(camera_key), values.atPose3(tag_key)
+        k = 1.0 if scale_key is None else 1.0 + float(values.atVector(scale_key)[0])
+        camera_T_tag = world_T_camera.between(world_T_tag)
+        m = camera_T_tag.matrix()
+        q = (local @ m[:3, :3].T) * k + m[:3, 3]
+        if q[:, 2].min() <= 0.0:
+            e, JC, JT, _ = project_corners(world_T_camera, world_T_tag, k * local, cal, meas,
+                                           want_jacobians=jacobians is not None)
+        else:
+            iz = 1.0 / q[:, 2]
+            xy = q[:, :2] * iz[:, None]
+            e = (xy @ to_px + offset).ravel()
+            if jacobians is not None:
+                x, y = xy[:, 0], xy[:, 1]
+                xy1 = x * y
+                # project_corners' interaction matrix, rows (u, v) of each corner, then the calibration
+                rows = np.array([xy1, -1.0 - x * x, y, -iz, zeros, x * iz,
+                                 1.0 + y * y, -xy1, -x, zeros, -iz, y * iz])
+                JC = (mix @ rows.T.reshape(-1, 2, 6)).reshape(-1, 6)
+                JT = JC @ camera_T_tag.AdjointMap()
+                JT *= -1.0
+        if lens_key is not None:
+            e += minus_basis @ values.atVector(lens_key)
+        if jacobians is not None:
+            jacobians[0], jacobians[1] = JC, JT
+            j = 2
+            if scale_key is not None:
+                jacobians[2] = np.sum(JT[:, 3:] * local_rows, axis=1, keepdims=True)
+                j = 3
+            if lens_key is not None:
+                jacobians[j] = minus_basis
+        return e
+
+    return error
 
 
 def undistort_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:

@@ -150,6 +150,9 @@ class SfGraphSlam:
         self.estimate = gtsam.Values()
         self._batch_solved = False                       # the estimate came from solve_batch, not iSAM2
         self._batch_marginals: gtsam.Marginals | None = None
+        # iSAM2 marginal blocks of the current estimate, (key, key) -> block, from one joint
+        # marginal over every tag a step reads (`_prefetch`); emptied by every solve
+        self._cov_blocks: dict[tuple[int, int], np.ndarray] = {}
         self.generation: dict[int, int] = {}             # tag -> how many times it was re-placed
         # tags whose module's verdict is still open: their relations wait, so that the design
         # cannot pull a module whose measurement is still being refined by extra views
@@ -422,6 +425,8 @@ class SfGraphSlam:
         if hold:
             self.held.update(snapshot)
         self._isam_step()
+        self._prefetch([t for t in snapshot if self.has_tag(t)]
+                       + ([t for rel in self._decidable() for t in (rel.a, rel.b)] if self.config.semantic else []))
         snap = {t: (self.tag_pose(t), self._marginal(t)) for t in snapshot if self.has_tag(t)}
         if self.config.semantic and self._decide_relations():
             self._isam_step()
@@ -430,6 +435,8 @@ class SfGraphSlam:
     def release(self, tags: Iterable[int]) -> None:
         """The held tags' module is decided: their relations may now be tied."""
         self.held.difference_update(tags)
+        if self.config.semantic:
+            self._prefetch([t for rel in self._decidable() for t in (rel.a, rel.b)])
         if self.config.semantic and self._decide_relations():
             self._isam_step()
 
@@ -480,22 +487,39 @@ class SfGraphSlam:
         except (RuntimeError, IndexError):
             return None
 
+    def _linear_keys(self) -> gtsam.KeyList:
+        """Variables every factor of the run graph is linear in: the intrinsics (only in the survey's
+        joint prior, a linear factor) and the lens's distortion correction (the corner factors
+        subtract basis · d, a constant Jacobian).  Relinearising them changes no Jacobian, only
+        the right-hand side that iSAM2's delta already carries, so holding their linearisation
+        point gives the same estimate and marginals to round-off -- and spares the update the
+        re-elimination, from their cliques to the root, that each of their relinearisations
+        cost (the focal length moves past the threshold in most steps: a 0.001 px change)."""
+        keys = gtsam.KeyList()
+        if self.rig is not None:
+            for key in (INTRINSICS, DISTORTION):
+                if self.initial.exists(key):
+                    keys.push_back(key)
+        return keys
+
     def _isam_step(self) -> None:
         self._initialise_pending()
         new_variables = self._new_values.size() > 0
-        self.isam.update(self._new_factors, self._new_values)
+        linear = self._linear_keys()
+        self.isam.update(self._new_factors, self._new_values, [], noRelinKeys=linear)
         if new_variables:
             # one more relinearisation pass: a tag starts from a single IPPE sighting, a degree or
             # so off in tilt, and the first update linearises its factors there.  Without the pass
             # the estimate moves but the Bayes tree -- and every marginal the verdict reads -- stays
             # at the start: a module's 1-sigma came out 0.59 mm where the bound at the truth is
             # 0.41.  Semantic factors alone start no variable far off: no pass (it was ~2 ms).
-            self.isam.update()
+            self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], noRelinKeys=linear)
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self.estimate = self.isam.calculateEstimate()
         self._batch_solved = False
         self._batch_marginals = None
+        self._cov_blocks = {}
         self._collect_residuals()
 
     # ---- the corner noise, measured -----------------------------------------------------------
@@ -545,14 +569,24 @@ class SfGraphSlam:
         return added
 
     # ---- the semantic gate -------------------------------------------------------------------
-    def _decide_relations(self) -> int:
-        added = 0
-        c = self.config
+    def _decidable(self) -> list[RelationState]:
+        """The relations `_decide_relations` reads now: undecided, both tags seen in enough views
+        (a held deployable's deployment is read every round too; other held pairs wait)."""
+        out = []
         for rel in self.relations.values():
             if rel.decided or rel.a not in self.tags or rel.b not in self.tags:
                 continue
-            if min(self.observations.get(rel.a, 0), self.observations.get(rel.b, 0)) < c.min_observations:
+            if min(self.observations.get(rel.a, 0), self.observations.get(rel.b, 0)) < self.config.min_observations:
                 continue
+            if {rel.a, rel.b} & self.held and rel.kind != "deployable":
+                continue
+            out.append(rel)
+        return out
+
+    def _decide_relations(self) -> int:
+        added = 0
+        c = self.config
+        for rel in self._decidable():
             if {rel.a, rel.b} & self.held:
                 # the module's verdict is still open: whether it is deployed is part of the
                 # measurement (read now, again with every round); the design waits
@@ -637,6 +671,25 @@ class SfGraphSlam:
         m = self.model.module_by_name[self.model.tags[tag].module]
         return m.tags[0] == tag
 
+    def _prefetch(self, tags: Iterable[int]) -> None:
+        """The marginal blocks of every tag a step is about to read (the snapshot's tags, the pairs
+        whose relations are decided), from one joint marginal of iSAM2.  Each marginal after an
+        update recomputes the Bayes tree's shortcuts from the root down, ~1-2 ms whether it asks
+        for one key or eight: asked one pair at a time, a step paid that 3-4 times."""
+        if self._batch_solved:
+            return
+        keys = list(dict.fromkeys(self.key(t) for t in tags if self.has_tag(t)))
+        keys = [k for k in keys if (k, k) not in self._cov_blocks]
+        if len(keys) < 2:
+            return          # one key: marginalCovariance costs the same
+        try:
+            joint = self.isam.jointMarginalCovariance(keys)
+        except (RuntimeError, IndexError):
+            return
+        for ka in keys:
+            for kb in keys:
+                self._cov_blocks[ka, kb] = joint.at(ka, kb)
+
     def _relative_covariance(self, a: int, b: int) -> np.ndarray | None:
         """Covariance of tag_a_T_tag_b (tangent of b's frame) from the pair's *joint* marginal.
         Tags seen from the same views share those cameras' pose errors, and that shared part
@@ -649,9 +702,12 @@ class SfGraphSlam:
                 if self._batch_marginals is None:
                     self._batch_marginals = gtsam.Marginals(self.graph, self.estimate)
                 joint = self._batch_marginals.jointMarginalCovariance([ka, kb])
+                saa, sbb, sab = joint.at(ka, ka), joint.at(kb, kb), joint.at(ka, kb)
+            elif (ka, kb) in self._cov_blocks:
+                saa, sbb, sab = self._cov_blocks[ka, ka], self._cov_blocks[kb, kb], self._cov_blocks[ka, kb]
             else:
                 joint = self.isam.jointMarginalCovariance([ka, kb])
-            saa, sbb, sab = joint.at(ka, ka), joint.at(kb, kb), joint.at(ka, kb)
+                saa, sbb, sab = joint.at(ka, ka), joint.at(kb, kb), joint.at(ka, kb)
         except (RuntimeError, IndexError):
             return None
         rel = self.tag_pose(a).between(self.tag_pose(b))
@@ -674,6 +730,8 @@ class SfGraphSlam:
             if self._batch_marginals is None:
                 self._batch_marginals = gtsam.Marginals(self.graph, self.estimate)
             cov = self._batch_marginals.marginalCovariance(self.key(tag))
+        elif (key := self.key(tag), key) in self._cov_blocks:
+            cov = self._cov_blocks[key, key]
         else:
             cov = self.isam.marginalCovariance(self.key(tag))
         noise = self.corner_noise()
