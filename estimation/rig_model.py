@@ -231,6 +231,18 @@ def radial_basis(corners_px: np.ndarray, K: np.ndarray) -> np.ndarray:
     return G
 
 
+def radial_basis_many(corners_px: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """`radial_basis` of many tags' corners at once: (n, 4, 2) -> (n, 8, 2), the same numbers."""
+    u = np.asarray(corners_px, float).reshape(-1, 4, 2)
+    f = np.array([K[0, 0], K[1, 1]])
+    xn = (u - np.array([K[0, 2], K[1, 2]])) / f
+    r2 = np.sum(xn ** 2, axis=2, keepdims=True)
+    G = np.empty((len(u), 8, 2))
+    G[:, :, 0] = (-f * xn * r2).reshape(-1, 8)
+    G[:, :, 1] = (-f * xn * r2 ** 2).reshape(-1, 8)
+    return G
+
+
 def distortion_prior_sigmas(sigma_px: float, K: np.ndarray) -> np.ndarray:
     """Prior sigmas of (dk1, dk2) that move a point at the frame's corner by `sigma_px` each (the
     corner taken where the principal point is the frame's centre)."""

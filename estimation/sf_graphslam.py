@@ -29,6 +29,7 @@ units, every update) and batch Levenberg–Marquardt for studies.  Marginal cova
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Iterable, Sequence
@@ -39,8 +40,8 @@ import numpy as np
 from estimation.corner_noise import CornerNoise, measured_corner_noise
 from estimation.fiducials import Detection, tag_object_points
 from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
-                                  chain_factor, corner_factor, distortion_prior_sigmas, radial_basis, tag_prior_noise,
-                                  undistort_px, undistorted_side_ratio)
+                                  chain_factor, corner_factor, distortion_prior_sigmas, radial_basis_many, tag_prior_noise,
+                                  undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.core.geometry import Pose3, Rot3
 from lab.core.rig_calibration import RigCalibration
@@ -53,6 +54,15 @@ _S = gtsam.symbol_shorthand.S  # each printed tag's scale error (SlamConfig.tag_
 GENERATION = 10_000             # a re-placed module's tags are new map elements
 
 
+@functools.lru_cache(maxsize=None)
+def _tag_points(size_m: float) -> np.ndarray:
+    """tag_object_points, one array per tag size (read only: the corner factors keep it)."""
+    points = tag_object_points(size_m)
+    points.flags.writeable = False
+    return points
+
+
+@functools.lru_cache(maxsize=None)
 def _robust_k(dof: int) -> float:
     """Huber threshold on a factor's whitened error norm: the 99 % point of its chi distribution.
     GTSAM's robust kernels act on the norm of the whole factor's error, and an 8-D corner error is
@@ -165,7 +175,7 @@ class SfGraphSlam:
         # graph index and obliquity scale, and the face-on residuals of those evaluated so far
         self._corner_factors: list[tuple[int, float]] = []
         self._residuals_done = 0
-        self._face_on_residuals: list[np.ndarray] = []
+        self._face_on_residuals = np.zeros(0)
         self._corner_noise: CornerNoise | None = None
         self._corner_params = 0                          # variables the corners determine (6 per tag and view)
         # turntable tags whose prior is part of the calibration's joint prior (valued from the start)
@@ -312,15 +322,25 @@ class SfGraphSlam:
         self._value(C(k), structure_T_camera)
         self._corner_params += 6
         c = self.config
-        for d in detections:
-            if d.tag_id not in self.model.tags:
-                continue
+        detections = [d for d in detections if d.tag_id in self.model.tags]
+        if self.camera is not None and detections:
+            # the view's corners undistorted, their obliquity and their lens basis in one pass each
+            # (the same numbers as one tag at a time: undistort_px, undistorted_side_ratio, radial_basis)
+            K = self.camera[0]
+            undistorted = undistort_px(np.concatenate([np.asarray(d.corners_px, float).reshape(4, 2)
+                                                       for d in detections]), *self.camera).reshape(-1, 4, 2)
+            edges = np.roll(undistorted, -1, axis=1) - undistorted
+            sides = np.sqrt(np.einsum("nij,nij->ni", edges, edges))
+            top = sides.max(axis=1)
+            ratios = np.where(top > 0, sides.min(axis=1) / np.where(top > 0, top, 1.0), 0.0)
+            bases = radial_basis_many(undistorted, K) if c.observation == "corners" and self.rig is not None else None
+        for i, d in enumerate(detections):
             scale = 1.0
             u = None
             if self.camera is not None:
-                u = undistort_px(d.corners_px, *self.camera)
+                u = undistorted[i]
                 # an oblique sighting's corners are worse (rig_model.side_ratio); too flat, none
-                ratio = undistorted_side_ratio(u)
+                ratio = float(ratios[i])
                 if ratio < MIN_SIDE_RATIO:
                     continue
                 scale = ratio ** -OBLIQUE_EXPONENT
@@ -328,12 +348,11 @@ class SfGraphSlam:
             lens = None
             if c.observation == "corners":
                 assert self.camera is not None and u is not None
-                K = self.camera[0]
                 if self.rig is not None and self._distortion_key():
-                    lens = (DISTORTION, radial_basis(u, K))
+                    lens = (DISTORTION, bases[i])
             spec = ("corners", C(k), self.key(d.tag_id), d.size_m, scale, sk, lens)
             if c.observation == "corners":
-                self._add(corner_factor(C(k), self.key(d.tag_id), u, tag_object_points(d.size_m), c.corner_sigma_px * scale,
+                self._add(corner_factor(C(k), self.key(d.tag_id), u, _tag_points(d.size_m), c.corner_sigma_px * scale,
                                         robust_k=_robust_k(8) if c.huber_k else None, fixed=self._cal,
                                         scale_key=sk, distortion=lens), spec)
                 self._corner_factors.append((self.graph.size() - 1, scale))
@@ -389,18 +408,20 @@ class SfGraphSlam:
             best = sightings[0][0].compose(sightings[0][1].camera_T_tag)
             if self.camera is not None and len(sightings) > 1:
                 K, dist = self.camera
-                obs = [(cam, undistort_px(d.corners_px, K, dist), tag_object_points(d.size_m)) for cam, d in sightings]
-
-                def cost(p: Pose3) -> float:
-                    total = 0.0
-                    for cam, uv, local in obs:
-                        pts = (cam.inverse().compose(p).matrix() @ np.c_[local, np.ones(4)].T)[:3].T
-                        if np.any(pts[:, 2] <= 0):
-                            return math.inf
-                        proj = (K @ (pts / pts[:, 2:3]).T).T[:, :2]
-                        total += float(np.sum((proj - uv) ** 2))
-                    return total
-                best = min((cam.compose(d.camera_T_tag) for cam, d in sightings), key=cost)
+                candidates = [cam.compose(d.camera_T_tag) for cam, d in sightings]
+                # every candidate against every sighting at once: (candidate, sighting, corner)
+                camera_T_structure = np.array([cam.inverse().matrix() for cam, _ in sightings])
+                structure_T_tag = np.array([p.matrix() for p in candidates])
+                camera_T_tag = np.einsum("sij,cjk->csik", camera_T_structure, structure_T_tag)
+                local = np.array([tag_object_points(d.size_m) for _, d in sightings])          # (s, 4, 3)
+                uv = np.array([undistort_px(d.corners_px, K, dist) for _, d in sightings])     # (s, 4, 2)
+                pts = np.einsum("csij,snj->csni", camera_T_tag[..., :3, :3], local) + camera_T_tag[..., None, :3, 3]
+                z = pts[..., 2:3]
+                behind = np.any(z[..., 0] <= 0, axis=(1, 2))
+                proj = np.einsum("ij,csnj->csni", K, pts / np.where(z > 0, z, 1.0))[..., :2]
+                cost = np.sum((proj - uv) ** 2, axis=(1, 2, 3))
+                cost[behind] = math.inf
+                best = candidates[int(np.argmin(cost))]
             self._value(key, best)
         self._pending = {}
 
@@ -530,12 +551,17 @@ class SfGraphSlam:
         if not todo:
             return
         self._residuals_done = len(self._corner_factors)
+        new = []
         for index, scale in todo:
             f = self.graph.at(index)
             if all(self.estimate.exists(k) for k in f.keys()):
-                self._face_on_residuals.append(np.asarray(f.unwhitenedError(self.estimate), float) / scale)
-        if self._face_on_residuals:
-            self._corner_noise = measured_corner_noise(np.concatenate(self._face_on_residuals), self._corner_params,
+                new.append(np.asarray(f.unwhitenedError(self.estimate), float) / scale)
+        if new:
+            # one array for the run, grown by the step's residuals (not a list of every sighting's
+            # 8, concatenated again at every step)
+            self._face_on_residuals = np.concatenate([self._face_on_residuals] + new)
+        if self._face_on_residuals.size:
+            self._corner_noise = measured_corner_noise(self._face_on_residuals, self._corner_params,
                                                        self.config.corner_sigma_px)
 
     def corner_noise(self) -> CornerNoise | None:
