@@ -40,7 +40,7 @@ import numpy as np
 from estimation.corner_noise import CornerNoise, measured_corner_noise
 from estimation.fiducials import Detection, tag_object_points
 from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
-                                  chain_factor, corner_factor, distortion_prior_sigmas, radial_basis_many, tag_prior_noise,
+                                  chain_factor, corner_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
                                   undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.core.geometry import Pose3, Rot3
@@ -170,7 +170,8 @@ class SfGraphSlam:
         # what each factor is, so that the bound can rebuild the graph with the true noise
         self.specs: list[tuple] = []
         # a new tag's sightings until the next solve gives it its initial value
-        self._pending: dict[int, list[tuple[Pose3, Detection]]] = {}
+        # (camera, detection, its undistorted corners, corner sigma, lens basis)
+        self._pending: dict[int, list[tuple]] = {}
         # the corner noise measured from the run's own residuals (corner_noise): each corner factor's
         # graph index and obliquity scale, and the face-on residuals of those evaluated so far
         self._corner_factors: list[tuple[int, float]] = []
@@ -378,7 +379,8 @@ class SfGraphSlam:
                 elif self.rig is not None and self.model.tags[d.tag_id].module == "turntable":
                     self._turntable_tag_prior(d.tag_id)
             if self.key(d.tag_id) in self._pending:
-                self._pending[self.key(d.tag_id)].append((structure_T_camera, d))
+                self._pending[self.key(d.tag_id)].append((structure_T_camera, d, u, c.corner_sigma_px * scale,
+                                                          None if lens is None else lens[1]))
             self.observations[d.tag_id] = self.observations.get(d.tag_id, 0) + 1
         return k
 
@@ -408,13 +410,13 @@ class SfGraphSlam:
             best = sightings[0][0].compose(sightings[0][1].camera_T_tag)
             if self.camera is not None and len(sightings) > 1:
                 K, dist = self.camera
-                candidates = [cam.compose(d.camera_T_tag) for cam, d in sightings]
+                candidates = [s[0].compose(s[1].camera_T_tag) for s in sightings]
                 # every candidate against every sighting at once: (candidate, sighting, corner)
-                camera_T_structure = np.array([cam.inverse().matrix() for cam, _ in sightings])
+                camera_T_structure = np.array([s[0].inverse().matrix() for s in sightings])
                 structure_T_tag = np.array([p.matrix() for p in candidates])
                 camera_T_tag = np.einsum("sij,cjk->csik", camera_T_structure, structure_T_tag)
-                local = np.array([tag_object_points(d.size_m) for _, d in sightings])          # (s, 4, 3)
-                uv = np.array([undistort_px(d.corners_px, K, dist) for _, d in sightings])     # (s, 4, 2)
+                local = np.array([_tag_points(s[1].size_m) for s in sightings])                # (s, 4, 3)
+                uv = np.array([s[2] for s in sightings])                                        # (s, 4, 2)
                 pts = np.einsum("csij,snj->csni", camera_T_tag[..., :3, :3], local) + camera_T_tag[..., None, :3, 3]
                 z = pts[..., 2:3]
                 behind = np.any(z[..., 0] <= 0, axis=(1, 2))
@@ -422,8 +424,36 @@ class SfGraphSlam:
                 cost = np.sum((proj - uv) ** 2, axis=(1, 2, 3))
                 cost[behind] = math.inf
                 best = candidates[int(np.argmin(cost))]
+            if self.config.observation == "corners" and self.camera is not None and len({s[1].size_m for s in sightings}) == 1:
+                best = self._refined(key, best, sightings)
             self._value(key, best)
         self._pending = {}
+
+    def _refined(self, key: int, start: Pose3, sightings: list[tuple]) -> Pose3:
+        """A new tag's start refined against its corners in the step's views (cameras where the
+        rig puts them, its print scale and the lens correction at their current values): iSAM2
+        then linearises its factors near the solution once, instead of at the IPPE pose and again
+        in the pass after the first solve (`rig_model.refine_tag_pose`)."""
+        assert self._cal is not None
+        tag = key - _T(0)
+        scale_key = _S(tag % GENERATION)
+        scale, scale_sigma = 0.0, 0.0
+        if self.estimate.exists(scale_key):
+            scale = float(self.estimate.atVector(scale_key)[0])         # a re-placed tag's print: as measured
+        elif self._new_values.exists(scale_key):
+            scale_sigma = self.config.tag_scale_sigma                    # new: refined under its prior
+        lens = None
+        if all(s[4] is not None for s in sightings):
+            d = (self.estimate if self.estimate.exists(DISTORTION) else self._new_values).atVector(DISTORTION)
+            lens = (np.array([s[4] for s in sightings]), d)
+        cal = np.array([self._cal.fx(), self._cal.fy(), self._cal.skew(), self._cal.px(), self._cal.py()])
+        pose, scale = refine_tag_pose(start, [s[0] for s in sightings], np.array([s[2] for s in sightings]),
+                                      _tag_points(sightings[0][1].size_m), cal, np.array([s[3] for s in sightings]),
+                                      scale, lens, scale_sigma)
+        if scale_sigma > 0:
+            self._new_values.update(scale_key, np.array([scale]))
+            self.initial.update(scale_key, np.array([scale]))
+        return pose
 
     def _add(self, factor, spec: tuple) -> None:
         self._new_factors.add(factor)
