@@ -174,7 +174,8 @@ class SfGraphSlam:
         self._pending: dict[int, list[tuple]] = {}
         # the corner noise measured from the run's own residuals (corner_noise): each corner factor's
         # graph index and obliquity scale, and the face-on residuals of those evaluated so far
-        self._corner_factors: list[tuple[int, float]] = []
+        # (graph index, obliquity scale, camera, tag, scale key, undistorted corners, tag corners, lens basis)
+        self._corner_factors: list[tuple] = []
         self._residuals_done = 0
         self._face_on_residuals = np.zeros(0)
         self._corner_noise: CornerNoise | None = None
@@ -356,7 +357,8 @@ class SfGraphSlam:
                 self._add(corner_factor(C(k), self.key(d.tag_id), u, _tag_points(d.size_m), c.corner_sigma_px * scale,
                                         robust_k=_robust_k(8) if c.huber_k else None, fixed=self._cal,
                                         scale_key=sk, distortion=lens), spec)
-                self._corner_factors.append((self.graph.size() - 1, scale))
+                self._corner_factors.append((self.graph.size() - 1, scale, C(k), self.key(d.tag_id), sk, u,
+                                             _tag_points(d.size_m), None if lens is None else lens[1]))
             else:
                 if c.observation == "corner-info":
                     gauss = self._corner_information(d, c.corner_sigma_px * scale)
@@ -576,20 +578,38 @@ class SfGraphSlam:
     # ---- the corner noise, measured -----------------------------------------------------------
     def _collect_residuals(self) -> None:
         """The face-on reprojection residuals of the corner factors added since the last solve, at
-        the estimate that first includes them (each factor once: O(new factors) per step)."""
+        the estimate that first includes them (each factor once: O(new factors) per step).  The
+        corner factors' own error (`rig_model._fixed_corner_error`), evaluated for the step's
+        factors in one array pass instead of one Python callback each."""
         todo = self._corner_factors[self._residuals_done:]
         if not todo:
             return
         self._residuals_done = len(self._corner_factors)
-        new = []
-        for index, scale in todo:
-            f = self.graph.at(index)
-            if all(self.estimate.exists(k) for k in f.keys()):
-                new.append(np.asarray(f.unwhitenedError(self.estimate), float) / scale)
-        if new:
-            # one array for the run, grown by the step's residuals (not a list of every sighting's
-            # 8, concatenated again at every step)
-            self._face_on_residuals = np.concatenate([self._face_on_residuals] + new)
+        est = self.estimate
+        todo = [f for f in todo if est.exists(f[2]) and est.exists(f[3]) and (f[4] is None or est.exists(f[4]))
+                and (f[7] is None or est.exists(DISTORTION))]
+        if todo:
+            assert self._cal is not None
+            m = np.array([est.atPose3(f[2]).between(est.atPose3(f[3])).matrix() for f in todo])     # (n, 4, 4)
+            k = np.array([1.0 if f[4] is None else 1.0 + float(est.atVector(f[4])[0]) for f in todo])
+            local = np.array([f[6] for f in todo]) * k[:, None, None]                              # (n, 4, 3)
+            q = local @ np.swapaxes(m[:, :3, :3], 1, 2) + m[:, None, :3, 3]
+            z = q[..., 2]
+            behind = z <= 0
+            iz = 1.0 / np.where(behind, 1.0, z)
+            x, y = q[..., 0] * iz, q[..., 1] * iz
+            cal = self._cal
+            meas = np.array([f[5] for f in todo])                                                   # (n, 4, 2)
+            e = np.empty((len(todo), 4, 2))
+            e[..., 0] = cal.fx() * x + cal.skew() * y + cal.px() - meas[..., 0]
+            e[..., 1] = cal.fy() * y + cal.py() - meas[..., 1]
+            e[behind] = 1e3
+            e = e.reshape(len(todo), 8)
+            lensed = [i for i, f in enumerate(todo) if f[7] is not None]
+            if lensed:
+                e[lensed] -= np.array([todo[i][7] for i in lensed]) @ est.atVector(DISTORTION)
+            scales = np.array([f[1] for f in todo])
+            self._face_on_residuals = np.concatenate([self._face_on_residuals, (e / scales[:, None]).ravel()])
         if self._face_on_residuals.size:
             self._corner_noise = measured_corner_noise(self._face_on_residuals, self._corner_params,
                                                        self.config.corner_sigma_px)
