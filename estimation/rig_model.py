@@ -39,6 +39,7 @@ the calibration is fixed by the turntable tags and the modules already tied.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -55,6 +56,8 @@ AXIS, BASE, MOUNT, INTRINSICS, LIFT = (gtsam.symbol(c, 0) for c in "abmkl")
 DISTORTION = gtsam.symbol("d", 0)
 _ABOUT_Z = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])    # a rotation about z, in GTSAM's tangent
 GAUGE_SIGMA = 1e-7
+_ZEROS4 = np.zeros(4)
+_ZEROS4.flags.writeable = False
 
 
 @dataclass(frozen=True)
@@ -252,7 +255,7 @@ def distortion_prior_sigmas(sigma_px: float, K: np.ndarray) -> np.ndarray:
 
 
 def _cal_vector(K: gtsam.Cal3_S2) -> np.ndarray:
-    return np.array([K.fx(), K.fy(), K.skew(), K.px(), K.py()])
+    return np.asarray(K.vector(), float)       # fx, fy, s, u0, v0
 
 
 def project_corners(world_T_camera: Pose3, world_T_tag: Pose3, local: np.ndarray, cal: np.ndarray,
@@ -316,11 +319,10 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     local = np.asarray(tag_corners_m, dtype=float).reshape(4, 3)
     noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(8, sigma_px)
     if robust_k:
-        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_k), noise)
+        noise = gtsam.noiseModel.Robust.Create(_huber(robust_k), noise)
     fixed_K = None if fixed is None else _cal_vector(fixed)
     lens_basis = None if distortion is None else np.asarray(distortion[1], float)
 
-    local_rows = np.repeat(local, 2, axis=0)             # (8, 3): each row's corner, for the scale
     if fixed_K is not None:
         error = _fixed_corner_error(camera_key, tag_key, meas, local, fixed_K, scale_key,
                                     None if distortion is None else (distortion[0], lens_basis))
@@ -328,6 +330,8 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
         if distortion is not None:
             keys.append(distortion[0])
         return gtsam.CustomFactor(noise, keys, error)
+
+    local_rows = np.repeat(local, 2, axis=0)             # (8, 3): each row's corner, for the scale
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
         k = 1.0 + float(values.atVector(scale_key)[0]) if scale_key is not None else 1.0
@@ -358,6 +362,12 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     return gtsam.CustomFactor(noise, keys, error)
 
 
+@functools.lru_cache(maxsize=None)
+def _huber(k: float) -> gtsam.noiseModel.mEstimator.Base:
+    """One Huber kernel per threshold, shared by the factors that use it (it holds only k)."""
+    return gtsam.noiseModel.mEstimator.Huber.Create(k)
+
+
 def _fixed_corner_error(camera_key: int, tag_key: int, meas: np.ndarray, local: np.ndarray, cal: np.ndarray,
                         scale_key: int | None, lens: tuple[int, np.ndarray] | None):
     """The corner factor's error function with the intrinsics fixed (a run's graph, the bound):
@@ -366,12 +376,12 @@ def _fixed_corner_error(camera_key: int, tag_key: int, meas: np.ndarray, local: 
     per call on 4-row arrays, not the arithmetic, is what such a callback spends its time on
     (32 us against 54 us a linearisation).  A corner behind the camera takes `project_corners`'s
     path (a large flat error and no gradient)."""
-    fx, fy, sk, u0, v0 = (float(c) for c in cal)
+    fx, fy, sk, u0, v0 = cal.tolist()
     to_px = np.array([[fx, 0.0], [sk, fy]])            # (x, y) @ to_px = (fx x + sk y, fy y)
-    mix = np.array([[fx, sk], [0.0, fy]])              # the same on a corner's (d x, d y) rows
-    offset = np.array([u0, v0]) - meas                  # (4, 2)
-    local_rows = np.repeat(local, 2, axis=0)
-    zeros = np.zeros(len(local))
+    mix = to_px.T                                       # the same on a corner's (d x, d y) rows
+    offset = cal[3:] - meas                             # (4, 2)
+    local_rows = local.repeat(2, axis=0) if scale_key is not None else None
+    zeros = _ZEROS4
     lens_key, minus_basis = (None, None) if lens is None else (lens[0], -lens[1])
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:

@@ -336,6 +336,11 @@ class SfGraphSlam:
             top = sides.max(axis=1)
             ratios = np.where(top > 0, sides.min(axis=1) / np.where(top > 0, top, 1.0), 0.0)
             bases = radial_basis_many(undistorted, K) if c.observation == "corners" and self.rig is not None else None
+        ck = C(k)
+        corners = c.observation == "corners"
+        scales = corners and c.tag_scale_sigma > 0
+        robust_k = _robust_k(8) if c.huber_k else None
+        lensed: bool | None = None               # the lens variable, looked up (and made) at the first sighting
         for i, d in enumerate(detections):
             scale = 1.0
             u = None
@@ -346,19 +351,22 @@ class SfGraphSlam:
                 if ratio < MIN_SIDE_RATIO:
                     continue
                 scale = ratio ** -OBLIQUE_EXPONENT
-            sk = self._scale_key(d.tag_id) if c.observation == "corners" and c.tag_scale_sigma > 0 else None
+            tk = self.key(d.tag_id)
+            sk = self._scale_key(d.tag_id) if scales else None
             lens = None
-            if c.observation == "corners":
+            if corners:
                 assert self.camera is not None and u is not None
-                if self.rig is not None and self._distortion_key():
+                if lensed is None:
+                    lensed = self.rig is not None and self._distortion_key()
+                if lensed:
                     lens = (DISTORTION, bases[i])
-            spec = ("corners", C(k), self.key(d.tag_id), d.size_m, scale, sk, lens)
-            if c.observation == "corners":
-                self._add(corner_factor(C(k), self.key(d.tag_id), u, _tag_points(d.size_m), c.corner_sigma_px * scale,
-                                        robust_k=_robust_k(8) if c.huber_k else None, fixed=self._cal,
-                                        scale_key=sk, distortion=lens), spec)
-                self._corner_factors.append((self.graph.size() - 1, scale, C(k), self.key(d.tag_id), sk, u,
-                                             _tag_points(d.size_m), None if lens is None else lens[1]))
+            spec = ("corners", ck, tk, d.size_m, scale, sk, lens)
+            if corners:
+                local = _tag_points(d.size_m)
+                self._add(corner_factor(ck, tk, u, local, c.corner_sigma_px * scale, robust_k=robust_k,
+                                        fixed=self._cal, scale_key=sk, distortion=lens), spec)
+                self._corner_factors.append((self.graph.size() - 1, scale, ck, tk, sk, u, local,
+                                             None if lens is None else lens[1]))
             else:
                 if c.observation == "corner-info":
                     gauss = self._corner_information(d, c.corner_sigma_px * scale)
