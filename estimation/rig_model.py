@@ -477,11 +477,11 @@ def refine_tag_pose(structure_T_tag: Pose3, cameras: Sequence[Pose3], corners_px
             e = np.r_[e, scale / scale_sigma]
         else:
             J = J.reshape(-1, 6) * w[:, None]
-        step = np.linalg.lstsq(J, -e, rcond=None)[0]
+        step = np.linalg.solve(J.T @ J, -(J.T @ e))
         tag = tag.retract(step[:6])
         if scale_sigma > 0:
             scale += float(step[6])
-        if np.abs(step).max() < 1e-9:
+        if np.abs(step).max() < 1e-8:       # what is left is of the order of its square
             break
     return tag, scale
 
