@@ -63,6 +63,13 @@ def _tag_points(size_m: float) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=None)
+def _gate_k(dof: int, one_sided: bool, alpha: float) -> float:
+    from scipy.special import chdtri, ndtri
+
+    return float(-ndtri(alpha)) if one_sided else float(math.sqrt(chdtri(dof, alpha)))
+
+
+@functools.lru_cache(maxsize=None)
 def _robust_k(dof: int) -> float:
     """Huber threshold on a factor's whitened error norm: the 99 % point of its chi distribution.
     GTSAM's robust kernels act on the norm of the whole factor's error, and an 8-D corner error is
@@ -163,6 +170,7 @@ class SfGraphSlam:
         # iSAM2 marginal blocks of the current estimate, (key, key) -> block, from one joint
         # marginal over every tag a step reads (`_prefetch`); emptied by every solve
         self._cov_blocks: dict[tuple[int, int], np.ndarray] = {}
+        self._tag_estimates: tuple[gtsam.Values, dict[int, Pose3]] | None = None
         self.generation: dict[int, int] = {}             # tag -> how many times it was re-placed
         # tags whose module's verdict is still open: their relations wait, so that the design
         # cannot pull a module whose measurement is still being refined by extra views
@@ -296,6 +304,7 @@ class SfGraphSlam:
         for t in tags:
             self.generation[t] = self.generation.get(t, 0) + 1
             self.tags.discard(t)
+            self._tag_estimates = None
             self.observations.pop(t, None)
         for rel in self.relations.values():
             if rel.a in tags or rel.b in tags:
@@ -310,6 +319,7 @@ class SfGraphSlam:
         motion, through the calibration) and what the detector saw."""
         k = self.n_views
         self.n_views += 1
+        self._tag_estimates = None
         if self.rig is not None:
             if motion is None:
                 raise ValueError("a graph with a rig model needs each view's commanded motion")
@@ -738,10 +748,7 @@ class SfGraphSlam:
 
     def _k(self, dof: int, one_sided: bool = False) -> float:
         """Threshold in sigmas for a `dof`-dimensional Gaussian error's norm at `gate_alpha`."""
-        from scipy.special import chdtri, ndtri
-
-        a = self.config.gate_alpha
-        return float(-ndtri(a)) if one_sided else float(math.sqrt(chdtri(dof, a)))
+        return _gate_k(dof, one_sided, self.config.gate_alpha)
 
     @staticmethod
     def _trans_sigma(cov: np.ndarray | None) -> float:
@@ -825,7 +832,10 @@ class SfGraphSlam:
         return self.estimate.atPose3(C(k))
 
     def tag_estimates(self) -> dict[int, Pose3]:
-        return {t: self.tag_pose(t) for t in sorted(self.tags) if self.has_tag(t)}
+        # read by tag elimination, the structure check and the log after every step: once per estimate
+        if self._tag_estimates is None or self._tag_estimates[0] is not self.estimate:
+            self._tag_estimates = (self.estimate, {t: self.tag_pose(t) for t in sorted(self.tags) if self.has_tag(t)})
+        return dict(self._tag_estimates[1])
 
     def not_deployed(self) -> dict[str, DeployCheck]:
         """Deployables whose B->T pair failed the deployment check, by module name."""
