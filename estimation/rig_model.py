@@ -423,65 +423,59 @@ def _fixed_corner_error(camera_key: int, tag_key: int, meas: np.ndarray, local: 
 
 def refine_tag_pose(structure_T_tag: Pose3, cameras: Sequence[Pose3], corners_px: np.ndarray, local: np.ndarray,
                     cal: np.ndarray, sigmas_px: np.ndarray, scale: float = 0.0, lens: tuple | None = None,
-                    scale_sigma: float = 0.0, iterations: int = 5) -> tuple[Pose3, float]:
+                    scale_sigma: float = 0.0, iterations: int = 5, tolerance: float = 1e-8) -> tuple[Pose3, float]:
     """The tag pose (and, with `scale_sigma`, its print scale under that zero-mean prior) that best
     reprojects its corners into the given views, the cameras held where they are: Gauss-Newton on
     the corner factors' own error (`_fixed_corner_error`: undistorted corners `corners_px`
     (n, 4, 2), each view's sigma, the lens correction `lens` = (bases (n, 8, 2), d) applied), from
-    `structure_T_tag` and `scale`.  A new tag's starting value for the graph: one sighting's IPPE
-    pose is a degree or so off in tilt, and iSAM2 would linearise the tag's factors there and again
-    after the first solve; from here the first linearisation is already within the relinearisation
-    threshold of the solution (the cameras move by a fraction of it).  A view with a corner behind
-    it stops the refinement where it is."""
+    `structure_T_tag` and `scale`, until a step is below `tolerance` (rad, m).  A new tag's
+    starting value for the graph: one sighting's IPPE pose is a degree or so off in tilt, and iSAM2
+    would linearise the tag's factors there and again after the first solve; from here the first
+    linearisation is already within the relinearisation threshold of the solution (the cameras
+    move by a fraction of it).  A view with a corner behind it stops the refinement where it is."""
     fx, fy, sk, u0, v0 = (float(c) for c in cal)
     to_px = np.array([[fx, 0.0], [sk, fy]])
-    mix = np.array([[fx, sk], [0.0, fy]])
     n = len(cameras)
-    nominal = np.asarray(local, float).reshape(4, 3)
-    nominal_rows = np.repeat(nominal, 2, axis=0)
+    nominal_rows = np.repeat(np.asarray(local, float).reshape(4, 3), 2, axis=0)      # (8, 3)
     target = np.asarray(corners_px, float).reshape(n, 4, 2) - np.array([u0, v0])
     if lens is not None:
         bases, d = lens
         target = target - (np.asarray(bases) @ np.asarray(d, float)).reshape(n, 4, 2)
     w = (1.0 / np.asarray(sigmas_px, float)).repeat(8)
     camera_T_structure = np.array([c.inverse().matrix() for c in cameras])
-    zeros = np.zeros((n, 4))
+    after, before = [1, 2, 0], [2, 0, 1]
+    Jq = np.zeros((n, 4, 2, 3))                  # d(pixel) / d(point in the camera frame)
+    A = np.empty((8 * n, 7 if scale_sigma > 0 else 6))
     tag = structure_T_tag
     for _ in range(iterations):
-        pts = (1.0 + scale) * nominal
-        m = camera_T_structure @ tag.matrix()                           # (n, 4, 4) camera_T_tag
-        q = pts @ np.swapaxes(m[:, :3, :3], 1, 2) + m[:, None, :3, 3]    # (n, 4, 3)
+        m = camera_T_structure @ tag.matrix()                             # (n, 4, 4) camera_T_tag
+        R = m[:, :3, :3]
+        p = (1.0 + scale) * nominal_rows                                  # (8, 3): each row's corner
+        q = p[::2] @ np.swapaxes(R, 1, 2) + m[:, None, :3, 3]             # (n, 4, 3)
         if q[..., 2].min() <= 0.0:
             break
         iz = 1.0 / q[..., 2]
-        xy = q[..., :2] * iz[..., None]
-        e = ((xy @ to_px) - target).reshape(-1) * w
-        x, y = xy[..., 0], xy[..., 1]
-        xy1 = x * y
-        rows = np.stack([xy1, -1.0 - x * x, y, -iz, zeros, x * iz,
-                         1.0 + y * y, -xy1, -x, zeros, -iz, y * iz], axis=-1).reshape(n, 4, 2, 6)
-        JC = mix @ rows                                                   # (n, 4, 2, 6)
-        # the tag's tangent: -JC Ad(camera_T_tag), Ad = [[R, 0], [[t]x R, R]]
-        R, t = m[:, :3, :3], m[:, :3, 3]
-        tx = np.zeros((n, 3, 3))
-        tx[:, 0, 1], tx[:, 0, 2], tx[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
-        tx -= np.swapaxes(tx, 1, 2)
-        Ad = np.zeros((n, 6, 6))
-        Ad[:, :3, :3] = Ad[:, 3:, 3:] = R
-        Ad[:, 3:, :3] = tx @ R
-        J = -(JC.reshape(n, 8, 6) @ Ad)                                  # (n, 8, 6)
+        uv = (q[..., :2] * iz[..., None]) @ to_px
+        e = (uv - target).reshape(-1) * w
+        Jq[..., 0, 0], Jq[..., 0, 1], Jq[..., 1, 1] = fx * iz, sk * iz, fy * iz
+        Jq[..., 0, 2], Jq[..., 1, 2] = -uv[..., 0] * iz, -uv[..., 1] * iz
+        # a right perturbation (w, v) of the tag moves a corner by R (v - p x w): the tag's Jacobian
+        # is [p x (Jq R), Jq R] row by row (project_corners' -JC Ad(camera_T_tag))
+        JqR = Jq.reshape(n, 8, 3) @ R                                      # (n, 8, 3)
+        A[:, :3] = (p[:, after] * JqR[..., before] - p[:, before] * JqR[..., after]).reshape(-1, 3)
+        A[:, 3:6] = JqR.reshape(-1, 3)
         if scale_sigma > 0:
-            Js = np.sum(J[:, :, 3:] * nominal_rows, axis=2).reshape(-1, 1)
-            J = np.vstack([np.hstack([J.reshape(-1, 6) * w[:, None], Js * w[:, None]]),
-                           np.r_[np.zeros(6), 1.0 / scale_sigma][None, :]])
-            e = np.r_[e, scale / scale_sigma]
-        else:
-            J = J.reshape(-1, 6) * w[:, None]
-        step = np.linalg.solve(J.T @ J, -(J.T @ e))
+            A[:, 6] = np.sum(JqR * nominal_rows, axis=2).reshape(-1)       # the corners grow with the scale
+        A *= w[:, None]
+        H, g = A.T @ A, A.T @ e
+        if scale_sigma > 0:
+            H[6, 6] += 1.0 / scale_sigma ** 2
+            g[6] += scale / scale_sigma ** 2
+        step = np.linalg.solve(H, -g)
         tag = tag.retract(step[:6])
         if scale_sigma > 0:
             scale += float(step[6])
-        if np.abs(step).max() < 1e-8:       # what is left is of the order of its square
+        if np.abs(step).max() < tolerance:    # what is left is of the order of its square
             break
     return tag, scale
 

@@ -453,7 +453,9 @@ class SfGraphSlam:
         """A new tag's start refined against its corners in the step's views (cameras where the
         rig puts them, its print scale and the lens correction at their current values): iSAM2
         then linearises its factors near the solution once, instead of at the IPPE pose and again
-        in the pass after the first solve (`rig_model.refine_tag_pose`)."""
+        in the pass after the first solve (`rig_model.refine_tag_pose`).  Refined until a step is
+        below the relinearisation threshold: Gauss-Newton gains about two digits a step here, so
+        what is left is far inside it (two steps from an IPPE pose)."""
         assert self._cal is not None
         tag = key - _T(0)
         scale_key = _S(tag % GENERATION)
@@ -469,7 +471,7 @@ class SfGraphSlam:
         cal = np.array([self._cal.fx(), self._cal.fy(), self._cal.skew(), self._cal.px(), self._cal.py()])
         pose, scale = refine_tag_pose(start, [s[0] for s in sightings], np.array([s[2] for s in sightings]),
                                       _tag_points(sightings[0][1].size_m), cal, np.array([s[3] for s in sightings]),
-                                      scale, lens, scale_sigma)
+                                      scale, lens, scale_sigma, tolerance=self.config.relinearize_threshold)
         if scale_sigma > 0:
             self._new_values.update(scale_key, np.array([scale]))
             self.initial.update(scale_key, np.array([scale]))
