@@ -390,7 +390,7 @@ def _fixed_corner_error(camera_key: int, tag_key: int, meas: np.ndarray, local: 
         camera_T_tag = world_T_camera.between(world_T_tag)
         m = camera_T_tag.matrix()
         q = (local @ m[:3, :3].T) * k + m[:3, 3]
-        if q[:, 2].min() <= 0.0:
+        if min(q[:, 2].tolist()) <= 0.0:
             e, JC, JT, _ = project_corners(world_T_camera, world_T_tag, k * local, cal, meas,
                                            want_jacobians=jacobians is not None)
         else:
@@ -412,7 +412,7 @@ def _fixed_corner_error(camera_key: int, tag_key: int, meas: np.ndarray, local: 
             jacobians[0], jacobians[1] = JC, JT
             j = 2
             if scale_key is not None:
-                jacobians[2] = np.sum(JT[:, 3:] * local_rows, axis=1, keepdims=True)
+                jacobians[2] = (JT[:, 3:] * local_rows).sum(axis=1)[:, None]
                 j = 3
             if lens_key is not None:
                 jacobians[j] = minus_basis
