@@ -39,6 +39,7 @@ the calibration is fixed by the turntable tags and the modules already tied.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -55,6 +56,8 @@ AXIS, BASE, MOUNT, INTRINSICS, LIFT = (gtsam.symbol(c, 0) for c in "abmkl")
 DISTORTION = gtsam.symbol("d", 0)
 _ABOUT_Z = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])    # a rotation about z, in GTSAM's tangent
 GAUGE_SIGMA = 1e-7
+_ZEROS4 = np.zeros(4)
+_ZEROS4.flags.writeable = False
 
 
 @dataclass(frozen=True)
@@ -231,6 +234,18 @@ def radial_basis(corners_px: np.ndarray, K: np.ndarray) -> np.ndarray:
     return G
 
 
+def radial_basis_many(corners_px: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """`radial_basis` of many tags' corners at once: (n, 4, 2) -> (n, 8, 2), the same numbers."""
+    u = np.asarray(corners_px, float).reshape(-1, 4, 2)
+    f = np.array([K[0, 0], K[1, 1]])
+    xn = (u - np.array([K[0, 2], K[1, 2]])) / f
+    r2 = np.sum(xn ** 2, axis=2, keepdims=True)
+    G = np.empty((len(u), 8, 2))
+    G[:, :, 0] = (-f * xn * r2).reshape(-1, 8)
+    G[:, :, 1] = (-f * xn * r2 ** 2).reshape(-1, 8)
+    return G
+
+
 def distortion_prior_sigmas(sigma_px: float, K: np.ndarray) -> np.ndarray:
     """Prior sigmas of (dk1, dk2) that move a point at the frame's corner by `sigma_px` each (the
     corner taken where the principal point is the frame's centre)."""
@@ -240,7 +255,7 @@ def distortion_prior_sigmas(sigma_px: float, K: np.ndarray) -> np.ndarray:
 
 
 def _cal_vector(K: gtsam.Cal3_S2) -> np.ndarray:
-    return np.array([K.fx(), K.fy(), K.skew(), K.px(), K.py()])
+    return np.asarray(K.vector(), float)       # fx, fy, s, u0, v0
 
 
 def project_corners(world_T_camera: Pose3, world_T_tag: Pose3, local: np.ndarray, cal: np.ndarray,
@@ -304,9 +319,17 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     local = np.asarray(tag_corners_m, dtype=float).reshape(4, 3)
     noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(8, sigma_px)
     if robust_k:
-        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_k), noise)
+        noise = gtsam.noiseModel.Robust.Create(_huber(robust_k), noise)
     fixed_K = None if fixed is None else _cal_vector(fixed)
     lens_basis = None if distortion is None else np.asarray(distortion[1], float)
+
+    if fixed_K is not None:
+        error = _fixed_corner_error(camera_key, tag_key, meas, local, fixed_K, scale_key,
+                                    None if distortion is None else (distortion[0], lens_basis))
+        keys = [camera_key, tag_key] + ([] if scale_key is None else [scale_key])
+        if distortion is not None:
+            keys.append(distortion[0])
+        return gtsam.CustomFactor(noise, keys, error)
 
     local_rows = np.repeat(local, 2, axis=0)             # (8, 3): each row's corner, for the scale
 
@@ -337,6 +360,124 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     if distortion is not None:
         keys.append(distortion[0])
     return gtsam.CustomFactor(noise, keys, error)
+
+
+@functools.lru_cache(maxsize=None)
+def _huber(k: float) -> gtsam.noiseModel.mEstimator.Base:
+    """One Huber kernel per threshold, shared by the factors that use it (it holds only k)."""
+    return gtsam.noiseModel.mEstimator.Huber.Create(k)
+
+
+def _fixed_corner_error(camera_key: int, tag_key: int, meas: np.ndarray, local: np.ndarray, cal: np.ndarray,
+                        scale_key: int | None, lens: tuple[int, np.ndarray] | None):
+    """The corner factor's error function with the intrinsics fixed (a run's graph, the bound):
+    the same error and Jacobians as `project_corners`, in as few numpy calls as the algebra
+    allows.  GTSAM calls it back once per corner factor per relinearisation, and numpy's fixed cost
+    per call on 4-row arrays, not the arithmetic, is what such a callback spends its time on
+    (32 us against 54 us a linearisation).  A corner behind the camera takes `project_corners`'s
+    path (a large flat error and no gradient)."""
+    fx, fy, sk, u0, v0 = cal.tolist()
+    to_px = np.array([[fx, 0.0], [sk, fy]])            # (x, y) @ to_px = (fx x + sk y, fy y)
+    mix = to_px.T                                       # the same on a corner's (d x, d y) rows
+    offset = cal[3:] - meas                             # (4, 2)
+    local_rows = local.repeat(2, axis=0) if scale_key is not None else None
+    zeros = _ZEROS4
+    lens_key, minus_basis = (None, None) if lens is None else (lens[0], -lens[1])
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
+        world_T_camera, world_T_tag = values.atPose3(camera_key), values.atPose3(tag_key)
+        k = 1.0 if scale_key is None else 1.0 + float(values.atVector(scale_key)[0])
+        camera_T_tag = world_T_camera.between(world_T_tag)
+        m = camera_T_tag.matrix()
+        q = (local @ m[:3, :3].T) * k + m[:3, 3]
+        if min(q[:, 2].tolist()) <= 0.0:
+            e, JC, JT, _ = project_corners(world_T_camera, world_T_tag, k * local, cal, meas,
+                                           want_jacobians=jacobians is not None)
+        else:
+            iz = 1.0 / q[:, 2]
+            xy = q[:, :2] * iz[:, None]
+            e = (xy @ to_px + offset).ravel()
+            if jacobians is not None:
+                x, y = xy[:, 0], xy[:, 1]
+                xy1 = x * y
+                # project_corners' interaction matrix, rows (u, v) of each corner, then the calibration
+                rows = np.array([xy1, -1.0 - x * x, y, -iz, zeros, x * iz,
+                                 1.0 + y * y, -xy1, -x, zeros, -iz, y * iz])
+                JC = (mix @ rows.T.reshape(-1, 2, 6)).reshape(-1, 6)
+                JT = JC @ camera_T_tag.AdjointMap()
+                JT *= -1.0
+        if lens_key is not None:
+            e += minus_basis @ values.atVector(lens_key)
+        if jacobians is not None:
+            jacobians[0], jacobians[1] = JC, JT
+            j = 2
+            if scale_key is not None:
+                jacobians[2] = (JT[:, 3:] * local_rows).sum(axis=1)[:, None]
+                j = 3
+            if lens_key is not None:
+                jacobians[j] = minus_basis
+        return e
+
+    return error
+
+
+def refine_tag_pose(structure_T_tag: Pose3, cameras: Sequence[Pose3], corners_px: np.ndarray, local: np.ndarray,
+                    cal: np.ndarray, sigmas_px: np.ndarray, scale: float = 0.0, lens: tuple | None = None,
+                    scale_sigma: float = 0.0, iterations: int = 5, tolerance: float = 1e-8) -> tuple[Pose3, float]:
+    """The tag pose (and, with `scale_sigma`, its print scale under that zero-mean prior) that best
+    reprojects its corners into the given views, the cameras held where they are: Gauss-Newton on
+    the corner factors' own error (`_fixed_corner_error`: undistorted corners `corners_px`
+    (n, 4, 2), each view's sigma, the lens correction `lens` = (bases (n, 8, 2), d) applied), from
+    `structure_T_tag` and `scale`, until a step is below `tolerance` (rad, m).  A new tag's
+    starting value for the graph: one sighting's IPPE pose is a degree or so off in tilt, and iSAM2
+    would linearise the tag's factors there and again after the first solve; from here the first
+    linearisation is already within the relinearisation threshold of the solution (the cameras
+    move by a fraction of it).  A view with a corner behind it stops the refinement where it is."""
+    fx, fy, sk, u0, v0 = (float(c) for c in cal)
+    to_px = np.array([[fx, 0.0], [sk, fy]])
+    n = len(cameras)
+    nominal_rows = np.repeat(np.asarray(local, float).reshape(4, 3), 2, axis=0)      # (8, 3)
+    target = np.asarray(corners_px, float).reshape(n, 4, 2) - np.array([u0, v0])
+    if lens is not None:
+        bases, d = lens
+        target = target - (np.asarray(bases) @ np.asarray(d, float)).reshape(n, 4, 2)
+    w = (1.0 / np.asarray(sigmas_px, float)).repeat(8)
+    camera_T_structure = np.array([c.inverse().matrix() for c in cameras])
+    after, before = [1, 2, 0], [2, 0, 1]
+    Jq = np.zeros((n, 4, 2, 3))                  # d(pixel) / d(point in the camera frame)
+    A = np.empty((8 * n, 7 if scale_sigma > 0 else 6))
+    tag = structure_T_tag
+    for _ in range(iterations):
+        m = camera_T_structure @ tag.matrix()                             # (n, 4, 4) camera_T_tag
+        R = m[:, :3, :3]
+        p = (1.0 + scale) * nominal_rows                                  # (8, 3): each row's corner
+        q = p[::2] @ np.swapaxes(R, 1, 2) + m[:, None, :3, 3]             # (n, 4, 3)
+        if q[..., 2].min() <= 0.0:
+            break
+        iz = 1.0 / q[..., 2]
+        uv = (q[..., :2] * iz[..., None]) @ to_px
+        e = (uv - target).reshape(-1) * w
+        Jq[..., 0, 0], Jq[..., 0, 1], Jq[..., 1, 1] = fx * iz, sk * iz, fy * iz
+        Jq[..., 0, 2], Jq[..., 1, 2] = -uv[..., 0] * iz, -uv[..., 1] * iz
+        # a right perturbation (w, v) of the tag moves a corner by R (v - p x w): the tag's Jacobian
+        # is [p x (Jq R), Jq R] row by row (project_corners' -JC Ad(camera_T_tag))
+        JqR = Jq.reshape(n, 8, 3) @ R                                      # (n, 8, 3)
+        A[:, :3] = (p[:, after] * JqR[..., before] - p[:, before] * JqR[..., after]).reshape(-1, 3)
+        A[:, 3:6] = JqR.reshape(-1, 3)
+        if scale_sigma > 0:
+            A[:, 6] = np.sum(JqR * nominal_rows, axis=2).reshape(-1)       # the corners grow with the scale
+        A *= w[:, None]
+        H, g = A.T @ A, A.T @ e
+        if scale_sigma > 0:
+            H[6, 6] += 1.0 / scale_sigma ** 2
+            g[6] += scale / scale_sigma ** 2
+        step = np.linalg.solve(H, -g)
+        tag = tag.retract(step[:6])
+        if scale_sigma > 0:
+            scale += float(step[6])
+        if np.abs(step).max() < tolerance:    # what is left is of the order of its square
+            break
+    return tag, scale
 
 
 def undistort_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:

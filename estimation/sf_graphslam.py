@@ -29,6 +29,7 @@ units, every update) and batch Levenberg–Marquardt for studies.  Marginal cova
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Iterable, Sequence
@@ -39,8 +40,8 @@ import numpy as np
 from estimation.corner_noise import CornerNoise, measured_corner_noise
 from estimation.fiducials import Detection, tag_object_points
 from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
-                                  chain_factor, corner_factor, distortion_prior_sigmas, radial_basis, tag_prior_noise,
-                                  undistort_px, undistorted_side_ratio)
+                                  chain_factor, corner_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
+                                  undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.core.geometry import Pose3, Rot3
 from lab.core.rig_calibration import RigCalibration
@@ -53,6 +54,22 @@ _S = gtsam.symbol_shorthand.S  # each printed tag's scale error (SlamConfig.tag_
 GENERATION = 10_000             # a re-placed module's tags are new map elements
 
 
+@functools.lru_cache(maxsize=None)
+def _tag_points(size_m: float) -> np.ndarray:
+    """tag_object_points, one array per tag size (read only: the corner factors keep it)."""
+    points = tag_object_points(size_m)
+    points.flags.writeable = False
+    return points
+
+
+@functools.lru_cache(maxsize=None)
+def _gate_k(dof: int, one_sided: bool, alpha: float) -> float:
+    from scipy.special import chdtri, ndtri
+
+    return float(-ndtri(alpha)) if one_sided else float(math.sqrt(chdtri(dof, alpha)))
+
+
+@functools.lru_cache(maxsize=None)
 def _robust_k(dof: int) -> float:
     """Huber threshold on a factor's whitened error norm: the 99 % point of its chi distribution.
     GTSAM's robust kernels act on the norm of the whole factor's error, and an 8-D corner error is
@@ -150,6 +167,10 @@ class SfGraphSlam:
         self.estimate = gtsam.Values()
         self._batch_solved = False                       # the estimate came from solve_batch, not iSAM2
         self._batch_marginals: gtsam.Marginals | None = None
+        # iSAM2 marginal blocks of the current estimate, (key, key) -> block, from one joint
+        # marginal over every tag a step reads (`_prefetch`); emptied by every solve
+        self._cov_blocks: dict[tuple[int, int], np.ndarray] = {}
+        self._tag_estimates: tuple[gtsam.Values, dict[int, Pose3]] | None = None
         self.generation: dict[int, int] = {}             # tag -> how many times it was re-placed
         # tags whose module's verdict is still open: their relations wait, so that the design
         # cannot pull a module whose measurement is still being refined by extra views
@@ -157,12 +178,14 @@ class SfGraphSlam:
         # what each factor is, so that the bound can rebuild the graph with the true noise
         self.specs: list[tuple] = []
         # a new tag's sightings until the next solve gives it its initial value
-        self._pending: dict[int, list[tuple[Pose3, Detection]]] = {}
+        # (camera, detection, its undistorted corners, corner sigma, lens basis)
+        self._pending: dict[int, list[tuple]] = {}
         # the corner noise measured from the run's own residuals (corner_noise): each corner factor's
         # graph index and obliquity scale, and the face-on residuals of those evaluated so far
-        self._corner_factors: list[tuple[int, float]] = []
+        # (graph index, obliquity scale, camera, tag, scale key, undistorted corners, tag corners, lens basis)
+        self._corner_factors: list[tuple] = []
         self._residuals_done = 0
-        self._face_on_residuals: list[np.ndarray] = []
+        self._face_on_residuals = np.zeros(0)
         self._corner_noise: CornerNoise | None = None
         self._corner_params = 0                          # variables the corners determine (6 per tag and view)
         # turntable tags whose prior is part of the calibration's joint prior (valued from the start)
@@ -281,6 +304,7 @@ class SfGraphSlam:
         for t in tags:
             self.generation[t] = self.generation.get(t, 0) + 1
             self.tags.discard(t)
+            self._tag_estimates = None
             self.observations.pop(t, None)
         for rel in self.relations.values():
             if rel.a in tags or rel.b in tags:
@@ -295,6 +319,7 @@ class SfGraphSlam:
         motion, through the calibration) and what the detector saw."""
         k = self.n_views
         self.n_views += 1
+        self._tag_estimates = None
         if self.rig is not None:
             if motion is None:
                 raise ValueError("a graph with a rig model needs each view's commanded motion")
@@ -309,31 +334,49 @@ class SfGraphSlam:
         self._value(C(k), structure_T_camera)
         self._corner_params += 6
         c = self.config
-        for d in detections:
-            if d.tag_id not in self.model.tags:
-                continue
+        detections = [d for d in detections if d.tag_id in self.model.tags]
+        if self.camera is not None and detections:
+            # the view's corners undistorted, their obliquity and their lens basis in one pass each
+            # (the same numbers as one tag at a time: undistort_px, undistorted_side_ratio, radial_basis)
+            K = self.camera[0]
+            undistorted = undistort_px(np.concatenate([np.asarray(d.corners_px, float).reshape(4, 2)
+                                                       for d in detections]), *self.camera).reshape(-1, 4, 2)
+            edges = np.roll(undistorted, -1, axis=1) - undistorted
+            sides = np.sqrt(np.einsum("nij,nij->ni", edges, edges))
+            top = sides.max(axis=1)
+            ratios = np.where(top > 0, sides.min(axis=1) / np.where(top > 0, top, 1.0), 0.0)
+            bases = radial_basis_many(undistorted, K) if c.observation == "corners" and self.rig is not None else None
+        ck = C(k)
+        corners = c.observation == "corners"
+        scales = corners and c.tag_scale_sigma > 0
+        robust_k = _robust_k(8) if c.huber_k else None
+        lensed: bool | None = None               # the lens variable, looked up (and made) at the first sighting
+        for i, d in enumerate(detections):
             scale = 1.0
             u = None
             if self.camera is not None:
-                u = undistort_px(d.corners_px, *self.camera)
+                u = undistorted[i]
                 # an oblique sighting's corners are worse (rig_model.side_ratio); too flat, none
-                ratio = undistorted_side_ratio(u)
+                ratio = float(ratios[i])
                 if ratio < MIN_SIDE_RATIO:
                     continue
                 scale = ratio ** -OBLIQUE_EXPONENT
-            sk = self._scale_key(d.tag_id) if c.observation == "corners" and c.tag_scale_sigma > 0 else None
+            tk = self.key(d.tag_id)
+            sk = self._scale_key(d.tag_id) if scales else None
             lens = None
-            if c.observation == "corners":
+            if corners:
                 assert self.camera is not None and u is not None
-                K = self.camera[0]
-                if self.rig is not None and self._distortion_key():
-                    lens = (DISTORTION, radial_basis(u, K))
-            spec = ("corners", C(k), self.key(d.tag_id), d.size_m, scale, sk, lens)
-            if c.observation == "corners":
-                self._add(corner_factor(C(k), self.key(d.tag_id), u, tag_object_points(d.size_m), c.corner_sigma_px * scale,
-                                        robust_k=_robust_k(8) if c.huber_k else None, fixed=self._cal,
-                                        scale_key=sk, distortion=lens), spec)
-                self._corner_factors.append((self.graph.size() - 1, scale))
+                if lensed is None:
+                    lensed = self.rig is not None and self._distortion_key()
+                if lensed:
+                    lens = (DISTORTION, bases[i])
+            spec = ("corners", ck, tk, d.size_m, scale, sk, lens)
+            if corners:
+                local = _tag_points(d.size_m)
+                self._add(corner_factor(ck, tk, u, local, c.corner_sigma_px * scale, robust_k=robust_k,
+                                        fixed=self._cal, scale_key=sk, distortion=lens), spec)
+                self._corner_factors.append((self.graph.size() - 1, scale, ck, tk, sk, u, local,
+                                             None if lens is None else lens[1]))
             else:
                 if c.observation == "corner-info":
                     gauss = self._corner_information(d, c.corner_sigma_px * scale)
@@ -356,7 +399,8 @@ class SfGraphSlam:
                 elif self.rig is not None and self.model.tags[d.tag_id].module == "turntable":
                     self._turntable_tag_prior(d.tag_id)
             if self.key(d.tag_id) in self._pending:
-                self._pending[self.key(d.tag_id)].append((structure_T_camera, d))
+                self._pending[self.key(d.tag_id)].append((structure_T_camera, d, u, c.corner_sigma_px * scale,
+                                                          None if lens is None else lens[1]))
             self.observations[d.tag_id] = self.observations.get(d.tag_id, 0) + 1
         return k
 
@@ -386,20 +430,52 @@ class SfGraphSlam:
             best = sightings[0][0].compose(sightings[0][1].camera_T_tag)
             if self.camera is not None and len(sightings) > 1:
                 K, dist = self.camera
-                obs = [(cam, undistort_px(d.corners_px, K, dist), tag_object_points(d.size_m)) for cam, d in sightings]
-
-                def cost(p: Pose3) -> float:
-                    total = 0.0
-                    for cam, uv, local in obs:
-                        pts = (cam.inverse().compose(p).matrix() @ np.c_[local, np.ones(4)].T)[:3].T
-                        if np.any(pts[:, 2] <= 0):
-                            return math.inf
-                        proj = (K @ (pts / pts[:, 2:3]).T).T[:, :2]
-                        total += float(np.sum((proj - uv) ** 2))
-                    return total
-                best = min((cam.compose(d.camera_T_tag) for cam, d in sightings), key=cost)
+                candidates = [s[0].compose(s[1].camera_T_tag) for s in sightings]
+                # every candidate against every sighting at once: (candidate, sighting, corner)
+                camera_T_structure = np.array([s[0].inverse().matrix() for s in sightings])
+                structure_T_tag = np.array([p.matrix() for p in candidates])
+                camera_T_tag = np.einsum("sij,cjk->csik", camera_T_structure, structure_T_tag)
+                local = np.array([_tag_points(s[1].size_m) for s in sightings])                # (s, 4, 3)
+                uv = np.array([s[2] for s in sightings])                                        # (s, 4, 2)
+                pts = np.einsum("csij,snj->csni", camera_T_tag[..., :3, :3], local) + camera_T_tag[..., None, :3, 3]
+                z = pts[..., 2:3]
+                behind = np.any(z[..., 0] <= 0, axis=(1, 2))
+                proj = np.einsum("ij,csnj->csni", K, pts / np.where(z > 0, z, 1.0))[..., :2]
+                cost = np.sum((proj - uv) ** 2, axis=(1, 2, 3))
+                cost[behind] = math.inf
+                best = candidates[int(np.argmin(cost))]
+            if self.config.observation == "corners" and self.camera is not None and len({s[1].size_m for s in sightings}) == 1:
+                best = self._refined(key, best, sightings)
             self._value(key, best)
         self._pending = {}
+
+    def _refined(self, key: int, start: Pose3, sightings: list[tuple]) -> Pose3:
+        """A new tag's start refined against its corners in the step's views (cameras where the
+        rig puts them, its print scale and the lens correction at their current values): iSAM2
+        then linearises its factors near the solution once, instead of at the IPPE pose and again
+        in the pass after the first solve (`rig_model.refine_tag_pose`).  Refined until a step is
+        below the relinearisation threshold: Gauss-Newton gains about two digits a step here, so
+        what is left is far inside it (two steps from an IPPE pose)."""
+        assert self._cal is not None
+        tag = key - _T(0)
+        scale_key = _S(tag % GENERATION)
+        scale, scale_sigma = 0.0, 0.0
+        if self.estimate.exists(scale_key):
+            scale = float(self.estimate.atVector(scale_key)[0])         # a re-placed tag's print: as measured
+        elif self._new_values.exists(scale_key):
+            scale_sigma = self.config.tag_scale_sigma                    # new: refined under its prior
+        lens = None
+        if all(s[4] is not None for s in sightings):
+            d = (self.estimate if self.estimate.exists(DISTORTION) else self._new_values).atVector(DISTORTION)
+            lens = (np.array([s[4] for s in sightings]), d)
+        cal = np.array([self._cal.fx(), self._cal.fy(), self._cal.skew(), self._cal.px(), self._cal.py()])
+        pose, scale = refine_tag_pose(start, [s[0] for s in sightings], np.array([s[2] for s in sightings]),
+                                      _tag_points(sightings[0][1].size_m), cal, np.array([s[3] for s in sightings]),
+                                      scale, lens, scale_sigma, tolerance=self.config.relinearize_threshold)
+        if scale_sigma > 0:
+            self._new_values.update(scale_key, np.array([scale]))
+            self.initial.update(scale_key, np.array([scale]))
+        return pose
 
     def _add(self, factor, spec: tuple) -> None:
         self._new_factors.add(factor)
@@ -422,6 +498,8 @@ class SfGraphSlam:
         if hold:
             self.held.update(snapshot)
         self._isam_step()
+        self._prefetch([t for t in snapshot if self.has_tag(t)]
+                       + ([t for rel in self._decidable() for t in (rel.a, rel.b)] if self.config.semantic else []))
         snap = {t: (self.tag_pose(t), self._marginal(t)) for t in snapshot if self.has_tag(t)}
         if self.config.semantic and self._decide_relations():
             self._isam_step()
@@ -430,6 +508,8 @@ class SfGraphSlam:
     def release(self, tags: Iterable[int]) -> None:
         """The held tags' module is decided: their relations may now be tied."""
         self.held.difference_update(tags)
+        if self.config.semantic:
+            self._prefetch([t for rel in self._decidable() for t in (rel.a, rel.b)])
         if self.config.semantic and self._decide_relations():
             self._isam_step()
 
@@ -480,38 +560,96 @@ class SfGraphSlam:
         except (RuntimeError, IndexError):
             return None
 
+    def _linear_keys(self) -> gtsam.KeyList:
+        """Variables every factor of the run graph is linear in: the intrinsics (only in the survey's
+        joint prior, a linear factor) and the lens's distortion correction (the corner factors
+        subtract basis · d, a constant Jacobian).  Relinearising them changes no Jacobian, only
+        the right-hand side that iSAM2's delta already carries, so holding their linearisation
+        point gives the same estimate and marginals to round-off -- and spares the update the
+        re-elimination, from their cliques to the root, that each of their relinearisations
+        cost (the focal length moves past the threshold in most steps: a 0.001 px change)."""
+        keys = gtsam.KeyList()
+        if self.rig is not None:
+            for key in (INTRINSICS, DISTORTION):
+                if self.initial.exists(key):
+                    keys.push_back(key)
+        return keys
+
+    def _moved_past_threshold(self, held: gtsam.KeyList) -> bool:
+        """Whether iSAM2's next update would relinearise anything: a variable, other than the
+        `held` ones, whose linear delta reaches the relinearisation threshold in any component
+        (ISAM2's own test, with the scalar threshold)."""
+        delta = gtsam.VectorValues(self.isam.getDelta())
+        zero = gtsam.VectorValues()
+        for key in set(held):
+            if delta.exists(key):
+                zero.insert(key, np.zeros(delta.at(key).size))
+        if zero.size():
+            delta.update(zero)
+        v = delta.vector()
+        return v.size > 0 and float(np.abs(v).max()) >= self.config.relinearize_threshold
+
     def _isam_step(self) -> None:
         self._initialise_pending()
         new_variables = self._new_values.size() > 0
-        self.isam.update(self._new_factors, self._new_values)
+        linear = self._linear_keys()
+        self.isam.update(self._new_factors, self._new_values, [], noRelinKeys=linear)
         if new_variables:
             # one more relinearisation pass: a tag starts from a single IPPE sighting, a degree or
             # so off in tilt, and the first update linearises its factors there.  Without the pass
             # the estimate moves but the Bayes tree -- and every marginal the verdict reads -- stays
             # at the start: a module's 1-sigma came out 0.59 mm where the bound at the truth is
             # 0.41.  Semantic factors alone start no variable far off: no pass (it was ~2 ms).
-            self.isam.update()
+            # From a refined start (`_refined`) the first solve seldom moves anything past the
+            # threshold; then the pass would relinearise nothing and leave the tree as it is, and
+            # is not run (it cost ~0.3 ms doing so).
+            if self._moved_past_threshold(linear):
+                self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], noRelinKeys=linear)
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self.estimate = self.isam.calculateEstimate()
         self._batch_solved = False
         self._batch_marginals = None
+        self._cov_blocks = {}
         self._collect_residuals()
 
     # ---- the corner noise, measured -----------------------------------------------------------
     def _collect_residuals(self) -> None:
         """The face-on reprojection residuals of the corner factors added since the last solve, at
-        the estimate that first includes them (each factor once: O(new factors) per step)."""
+        the estimate that first includes them (each factor once: O(new factors) per step).  The
+        corner factors' own error (`rig_model._fixed_corner_error`), evaluated for the step's
+        factors in one array pass instead of one Python callback each."""
         todo = self._corner_factors[self._residuals_done:]
         if not todo:
             return
         self._residuals_done = len(self._corner_factors)
-        for index, scale in todo:
-            f = self.graph.at(index)
-            if all(self.estimate.exists(k) for k in f.keys()):
-                self._face_on_residuals.append(np.asarray(f.unwhitenedError(self.estimate), float) / scale)
-        if self._face_on_residuals:
-            self._corner_noise = measured_corner_noise(np.concatenate(self._face_on_residuals), self._corner_params,
+        est = self.estimate
+        todo = [f for f in todo if est.exists(f[2]) and est.exists(f[3]) and (f[4] is None or est.exists(f[4]))
+                and (f[7] is None or est.exists(DISTORTION))]
+        if todo:
+            assert self._cal is not None
+            m = np.array([est.atPose3(f[2]).between(est.atPose3(f[3])).matrix() for f in todo])     # (n, 4, 4)
+            k = np.array([1.0 if f[4] is None else 1.0 + float(est.atVector(f[4])[0]) for f in todo])
+            local = np.array([f[6] for f in todo]) * k[:, None, None]                              # (n, 4, 3)
+            q = local @ np.swapaxes(m[:, :3, :3], 1, 2) + m[:, None, :3, 3]
+            z = q[..., 2]
+            behind = z <= 0
+            iz = 1.0 / np.where(behind, 1.0, z)
+            x, y = q[..., 0] * iz, q[..., 1] * iz
+            cal = self._cal
+            meas = np.array([f[5] for f in todo])                                                   # (n, 4, 2)
+            e = np.empty((len(todo), 4, 2))
+            e[..., 0] = cal.fx() * x + cal.skew() * y + cal.px() - meas[..., 0]
+            e[..., 1] = cal.fy() * y + cal.py() - meas[..., 1]
+            e[behind] = 1e3
+            e = e.reshape(len(todo), 8)
+            lensed = [i for i, f in enumerate(todo) if f[7] is not None]
+            if lensed:
+                e[lensed] -= np.array([todo[i][7] for i in lensed]) @ est.atVector(DISTORTION)
+            scales = np.array([f[1] for f in todo])
+            self._face_on_residuals = np.concatenate([self._face_on_residuals, (e / scales[:, None]).ravel()])
+        if self._face_on_residuals.size:
+            self._corner_noise = measured_corner_noise(self._face_on_residuals, self._corner_params,
                                                        self.config.corner_sigma_px)
 
     def corner_noise(self) -> CornerNoise | None:
@@ -545,14 +683,24 @@ class SfGraphSlam:
         return added
 
     # ---- the semantic gate -------------------------------------------------------------------
-    def _decide_relations(self) -> int:
-        added = 0
-        c = self.config
+    def _decidable(self) -> list[RelationState]:
+        """The relations `_decide_relations` reads now: undecided, both tags seen in enough views
+        (a held deployable's deployment is read every round too; other held pairs wait)."""
+        out = []
         for rel in self.relations.values():
             if rel.decided or rel.a not in self.tags or rel.b not in self.tags:
                 continue
-            if min(self.observations.get(rel.a, 0), self.observations.get(rel.b, 0)) < c.min_observations:
+            if min(self.observations.get(rel.a, 0), self.observations.get(rel.b, 0)) < self.config.min_observations:
                 continue
+            if {rel.a, rel.b} & self.held and rel.kind != "deployable":
+                continue
+            out.append(rel)
+        return out
+
+    def _decide_relations(self) -> int:
+        added = 0
+        c = self.config
+        for rel in self._decidable():
             if {rel.a, rel.b} & self.held:
                 # the module's verdict is still open: whether it is deployed is part of the
                 # measurement (read now, again with every round); the design waits
@@ -620,10 +768,7 @@ class SfGraphSlam:
 
     def _k(self, dof: int, one_sided: bool = False) -> float:
         """Threshold in sigmas for a `dof`-dimensional Gaussian error's norm at `gate_alpha`."""
-        from scipy.special import chdtri, ndtri
-
-        a = self.config.gate_alpha
-        return float(-ndtri(a)) if one_sided else float(math.sqrt(chdtri(dof, a)))
+        return _gate_k(dof, one_sided, self.config.gate_alpha)
 
     @staticmethod
     def _trans_sigma(cov: np.ndarray | None) -> float:
@@ -637,6 +782,25 @@ class SfGraphSlam:
         m = self.model.module_by_name[self.model.tags[tag].module]
         return m.tags[0] == tag
 
+    def _prefetch(self, tags: Iterable[int]) -> None:
+        """The marginal blocks of every tag a step is about to read (the snapshot's tags, the pairs
+        whose relations are decided), from one joint marginal of iSAM2.  Each marginal after an
+        update recomputes the Bayes tree's shortcuts from the root down, ~1-2 ms whether it asks
+        for one key or eight: asked one pair at a time, a step paid that 3-4 times."""
+        if self._batch_solved:
+            return
+        keys = list(dict.fromkeys(self.key(t) for t in tags if self.has_tag(t)))
+        keys = [k for k in keys if (k, k) not in self._cov_blocks]
+        if len(keys) < 2:
+            return          # one key: marginalCovariance costs the same
+        try:
+            joint = self.isam.jointMarginalCovariance(keys)
+        except (RuntimeError, IndexError):
+            return
+        for ka in keys:
+            for kb in keys:
+                self._cov_blocks[ka, kb] = joint.at(ka, kb)
+
     def _relative_covariance(self, a: int, b: int) -> np.ndarray | None:
         """Covariance of tag_a_T_tag_b (tangent of b's frame) from the pair's *joint* marginal.
         Tags seen from the same views share those cameras' pose errors, and that shared part
@@ -649,9 +813,12 @@ class SfGraphSlam:
                 if self._batch_marginals is None:
                     self._batch_marginals = gtsam.Marginals(self.graph, self.estimate)
                 joint = self._batch_marginals.jointMarginalCovariance([ka, kb])
+                saa, sbb, sab = joint.at(ka, ka), joint.at(kb, kb), joint.at(ka, kb)
+            elif (ka, kb) in self._cov_blocks:
+                saa, sbb, sab = self._cov_blocks[ka, ka], self._cov_blocks[kb, kb], self._cov_blocks[ka, kb]
             else:
                 joint = self.isam.jointMarginalCovariance([ka, kb])
-            saa, sbb, sab = joint.at(ka, ka), joint.at(kb, kb), joint.at(ka, kb)
+                saa, sbb, sab = joint.at(ka, ka), joint.at(kb, kb), joint.at(ka, kb)
         except (RuntimeError, IndexError):
             return None
         rel = self.tag_pose(a).between(self.tag_pose(b))
@@ -674,6 +841,8 @@ class SfGraphSlam:
             if self._batch_marginals is None:
                 self._batch_marginals = gtsam.Marginals(self.graph, self.estimate)
             cov = self._batch_marginals.marginalCovariance(self.key(tag))
+        elif (key := self.key(tag), key) in self._cov_blocks:
+            cov = self._cov_blocks[key, key]
         else:
             cov = self.isam.marginalCovariance(self.key(tag))
         noise = self.corner_noise()
@@ -683,7 +852,10 @@ class SfGraphSlam:
         return self.estimate.atPose3(C(k))
 
     def tag_estimates(self) -> dict[int, Pose3]:
-        return {t: self.tag_pose(t) for t in sorted(self.tags) if self.has_tag(t)}
+        # read by tag elimination, the structure check and the log after every step: once per estimate
+        if self._tag_estimates is None or self._tag_estimates[0] is not self.estimate:
+            self._tag_estimates = (self.estimate, {t: self.tag_pose(t) for t in sorted(self.tags) if self.has_tag(t)})
+        return dict(self._tag_estimates[1])
 
     def not_deployed(self) -> dict[str, DeployCheck]:
         """Deployables whose B->T pair failed the deployment check, by module name."""

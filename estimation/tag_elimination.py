@@ -72,11 +72,11 @@ def eliminate_tags(estimates: Mapping[int, Pose3], model: BorgModel, *, cutoff_m
         return estimates[b].compose(model.tags[b].structure_T_tag.inverse())
 
     if base_tag is None or base_tag not in estimates:
-        # every candidate base tag at once (a 5x5x5 has 154 tags: 154 fits of 154 predictions)
-        fits = [base_fit(b) for b in ids]
-        R = np.array([f.rotation().matrix() for f in fits])
-        p = np.array([f.translation() for f in fits])
-        base_tag = ids[int(np.argmin(np.median(residuals(R, p), axis=1)))]
+        # every candidate base tag at once (a 5x5x5 has 154 tags: 154 fits of 154 predictions),
+        # each fit estimate · design⁻¹ as a 4x4 product (base_fit's, one array pass)
+        fits = (np.array([estimates[b].matrix() for b in ids])
+                @ np.array([model.tags[b].structure_T_tag.inverse().matrix() for b in ids]))
+        base_tag = ids[int(np.argmin(np.median(residuals(fits[:, :3, :3], fits[:, :3, 3]), axis=1)))]
     fit = base_fit(base_tag)
     inliers = distances(fit) <= cutoff_m
     # an explained tag is off its design spot by its mechanism's motion: it must not bend the

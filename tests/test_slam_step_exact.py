@@ -1,0 +1,220 @@
+"""The SLAM step's shortcuts give the estimate the plain graph gives (issue 21): the corner factor's
+fast error function against the reference Python factor (`project_corners`), the variables held
+at their linearisation point because every factor is linear in them, the marginals read from one
+joint marginal, the residuals evaluated in one array pass, and a new tag's refined start."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from estimation.fiducials import Detection, tag_object_points
+from estimation.rig_model import (AXIS, BASE, DISTORTION, GAUGE_SIGMA, MOUNT, RigGeometry, ViewMotion, _cal_vector,
+                                  cal3_s2, corner_factor, project_corners, radial_basis, refine_tag_pose)
+from estimation.sf_graphslam import SfGraphSlam, SlamConfig
+from lab.core.config import load_rig
+from lab.core.geometry import Pose3, Rot3
+from lab.core.rig_calibration import RigCalibration
+from lab.core.structures.borg import build_borg
+
+RIG = load_rig()
+MODEL = build_borg(3)
+K = np.array([[914.0, 0.1, 639.5], [0, 913.0, 359.5], [0, 0, 1]])
+GEOM = RigGeometry.from_rig(RIG, MODEL.world_T_structure(0.0), K)
+TT = list(MODEL.turntable.tag_ids)
+C, T, S = gtsam.symbol_shorthand.C, gtsam.symbol_shorthand.T, gtsam.symbol_shorthand.S
+
+
+def _reference_corner_factor(camera_key, tag_key, meas, local, sigma, cal, scale_key, lens):
+    """The corner factor as it was written first: `project_corners` (one numpy pass, the
+    derivation in its docstring), the scale and lens terms added after."""
+    local_rows = np.repeat(local, 2, axis=0)
+
+    def error(this, values, jacobians):
+        k = 1.0 + float(values.atVector(scale_key)[0])
+        e, JC, JT, _ = project_corners(values.atPose3(camera_key), values.atPose3(tag_key), k * local, cal, meas,
+                                       want_jacobians=jacobians is not None)
+        e = e - lens[1] @ values.atVector(lens[0])
+        if jacobians is not None:
+            jacobians[0], jacobians[1] = JC, JT
+            jacobians[2] = np.sum(JT[:, 3:] * local_rows, axis=1, keepdims=True)
+            jacobians[3] = -lens[1]
+        return e
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(8, sigma), [camera_key, tag_key, scale_key, lens[0]],
+                              error)
+
+
+def _small_survey(seed: int = 0):
+    """Three cameras around one tag printed 0.15 % large, corners with 0.05 px noise."""
+    rng = np.random.default_rng(seed)
+    tag = Pose3(Rot3.RzRyRx(np.pi / 2, 0.0, -np.pi / 2 + 0.3), np.array([0.0, 0.2, 0.6]))
+    local = tag_object_points(0.1)
+    cams = [tag.compose(Pose3(Rot3.RzRyRx(np.pi, yaw, 0.0), np.zeros(3))).compose(Pose3(Rot3(), np.array([0.0, 0.0, -2.0])))
+            for yaw in (-0.35, 0.0, 0.4)]
+    meas = []
+    for cam in cams:
+        pinhole = gtsam.PinholeCameraCal3_S2(cam, cal3_s2(K))
+        meas.append(np.array([pinhole.project(tag.transformFrom(1.0015 * p)) for p in local])
+                    + rng.normal(0.0, 0.05, (4, 2)))
+    return tag, cams, local, meas
+
+
+def _solved(fast: bool):
+    """The small survey's graph with the fast or the reference corner factor, solved to the last digit."""
+    tag, cams, local, meas = _small_survey()
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    cal = cal3_s2(K)
+    for i, (cam, uv) in enumerate(zip(cams, meas)):
+        lens = (DISTORTION, radial_basis(uv, K))
+        if fast:
+            graph.add(corner_factor(C(i), T(0), uv, local, 0.05, robust_k=None, fixed=cal, scale_key=S(0),
+                                    distortion=lens))
+        else:
+            graph.add(_reference_corner_factor(C(i), T(0), uv, local, 0.05, _cal_vector(cal), S(0), lens))
+        graph.add(gtsam.PriorFactorPose3(C(i), cam, gtsam.noiseModel.Isotropic.Sigma(6, 1e-4)))
+        values.insert(C(i), cam)
+    graph.add(gtsam.PriorFactorVector(S(0), np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, 0.001)))
+    graph.add(gtsam.PriorFactorVector(DISTORTION, np.zeros(2), gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-3, 1e-4]))))
+    values.insert(T(0), tag.retract(np.array([0.01, -0.02, 0.005, 0.002, -0.001, 0.003])))
+    values.insert(S(0), np.zeros(1))
+    values.insert(DISTORTION, np.array([2e-4, -1e-5]))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-14)
+    params.setAbsoluteErrorTol(1e-16)
+    return gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize(), graph, values
+
+
+def test_the_fast_corner_factor_gives_the_reference_factors_error_and_estimate():
+    est, graph, values = _solved(fast=True)
+    ref, ref_graph, _ = _solved(fast=False)
+    for i in range(3):
+        # the error and its Jacobians at the start and at the solution, factor by factor
+        for at in (values, est):
+            f, r = graph.at(2 * i), ref_graph.at(2 * i)
+            assert f.unwhitenedError(at) == pytest.approx(r.unwhitenedError(at), abs=1e-9)
+            Af, bf = f.linearize(at).jacobian()
+            Ar, br = r.linearize(at).jacobian()
+            assert np.abs(Af - Ar).max() <= 1e-9 * np.abs(Ar).max() and np.abs(bf - br).max() < 1e-9
+    assert np.abs(est.atPose3(T(0)).translation() - ref.atPose3(T(0)).translation()).max() < 1e-9
+    assert np.abs(gtsam.Rot3.Logmap(est.atPose3(T(0)).rotation().between(ref.atPose3(T(0)).rotation()))).max() < 1e-9
+    assert est.atVector(S(0))[0] == pytest.approx(ref.atVector(S(0))[0], abs=1e-9)
+    # the tag moved: the comparison is of a solve, not of the start
+    assert np.abs(est.atPose3(T(0)).translation() - values.atPose3(T(0)).translation()).max() > 1e-4
+
+
+def test_a_tag_refined_against_fixed_cameras_is_the_least_squares_tag():
+    tag, cams, local, meas = _small_survey(1)
+    start = tag.retract(np.array([0.02, -0.015, 0.01, 0.003, -0.002, 0.004]))
+    got, scale = refine_tag_pose(start, cams, np.array(meas), local, _cal_vector(cal3_s2(K)), np.full(3, 0.05),
+                                 scale_sigma=0.001)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    for i, (cam, uv) in enumerate(zip(cams, meas)):
+        graph.add(corner_factor(C(i), T(0), uv, local, 0.05, robust_k=None, fixed=cal3_s2(K), scale_key=S(0)))
+        graph.add(gtsam.NonlinearEqualityPose3(C(i), cam))
+        values.insert(C(i), cam)
+    graph.add(gtsam.PriorFactorVector(S(0), np.zeros(1), gtsam.noiseModel.Isotropic.Sigma(1, 0.001)))
+    values.insert(T(0), start)
+    values.insert(S(0), np.zeros(1))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-14)
+    params.setAbsoluteErrorTol(1e-16)
+    lm = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    assert np.abs(got.translation() - lm.atPose3(T(0)).translation()).max() < 1e-9
+    assert np.abs(gtsam.Rot3.Logmap(got.rotation().between(lm.atPose3(T(0)).rotation()))).max() < 1e-9
+    assert scale == pytest.approx(lm.atVector(S(0))[0], abs=1e-9)
+
+
+def _calibration() -> RigCalibration:
+    """The rig survey's posterior as a run graph gets it: a joint covariance over the axis, base,
+    mount, intrinsics, lens and the turntable tags (independent blocks here)."""
+    means, covs = GEOM.priors(None)
+    n = 18 + 5 + 2 + 6 * len(TT)
+    joint = np.zeros((n, n))
+    joint[:6, :6], joint[6:12, 6:12], joint[12:18, 12:18] = covs[AXIS], covs[BASE], covs[MOUNT]
+    for i in (2, 5):
+        joint[i, i] = GAUGE_SIGMA ** 2
+    joint[18:23, 18:23] = np.diag([1.0, 1.0, 1e-8, 0.25, 0.25])
+    joint[23:25, 23:25] = np.diag([1e-6, 1e-7])
+    for i, t in enumerate(TT):
+        joint[25 + 6 * i:31 + 6 * i, 25 + 6 * i:31 + 6 * i] = np.diag([0.01 ** 2] * 3 + [0.0005 ** 2] * 3)
+    marg = {"world_T_axis": joint[:6, :6], "world_T_base": joint[6:12, 6:12], "platform_T_camera": joint[12:18, 12:18],
+            "K": joint[np.ix_([18, 19, 21, 22], [18, 19, 21, 22])]}
+    tags = {t: MODEL.tags[t].structure_T_tag for t in TT}
+    tag_covs = {t: joint[25 + 6 * i:31 + 6 * i, 25 + 6 * i:31 + 6 * i] for i, t in enumerate(TT)}
+    return RigCalibration(means[MOUNT], means[BASE], means[AXIS], K, marg, tags, tag_covs, 0.05, 10, "sim",
+                          joint_covariance=joint, corner_sigma_px=0.05)
+
+
+def _steps(seed: int = 0):
+    """Two steps of two views each, the rig where its nominal geometry puts it: each tag's
+    corners with 0.05 px noise, its IPPE pose a few tenths of a degree off."""
+    rng = np.random.default_rng(seed)
+    steps = []
+    for angles in ((-0.6, -0.3), (0.0, 0.3)):
+        views = []
+        for a in angles:
+            motion = ViewMotion(a, (0.0, 0.0, 0.0, 0.0, 0.1047, 0.0))
+            cam = GEOM.predict_nominal(motion)
+            pinhole = gtsam.PinholeCameraCal3_S2(cam, cal3_s2(K))
+            dets = []
+            for t in (0, 1, 2, 9, 13, 36, 37, 38, 47):
+                spec = MODEL.tags[t]
+                ct = cam.between(spec.structure_T_tag)
+                if float(ct.rotation().matrix()[:, 2] @ ct.translation()) >= 0:
+                    continue
+                uv = np.array([pinhole.project(spec.structure_T_tag.transformFrom(p))
+                               for p in tag_object_points(spec.size_m)]) + rng.normal(0.0, 0.05, (4, 2))
+                ippe = ct.compose(Pose3(Rot3.Expmap(rng.normal(0.0, 0.005, 3)), rng.normal(0.0, 0.001, 3)))
+                dets.append(Detection(t, uv, ippe, np.eye(6) * 1e-4, 0.05, 10.0, False, spec.size_m))
+            views.append((cam, dets, motion))
+        steps.append(views)
+    return steps
+
+
+def _run(hold_linear: bool = True) -> SfGraphSlam:
+    slam = SfGraphSlam(MODEL, SlamConfig(observation="corners", corner_sigma_px=0.05, tag_scale_sigma=0.001),
+                       rig=GEOM, calibration=_calibration(), camera=(K, np.zeros(5)))
+    if not hold_linear:
+        slam._linear_keys = gtsam.KeyList
+    for views in _steps():
+        for cam, dets, motion in views:
+            slam.add_view(cam, dets, motion)
+        slam.update(snapshot=[0, 1, 2])
+    return slam
+
+
+def test_holding_the_linear_variables_changes_no_estimate_and_no_marginal():
+    held, free = _run(), _run(hold_linear=False)
+    assert list(held._linear_keys()) and not list(free._linear_keys())
+    assert held.tags == free.tags and len(held.tags) >= 8
+    for t in held.tags:
+        a, b = held.tag_pose(t), free.tag_pose(t)
+        assert np.abs(a.translation() - b.translation()).max() < 1e-9
+        assert np.abs(gtsam.Rot3.Logmap(a.rotation().between(b.rotation()))).max() < 1e-9
+        assert held.tag_covariance(t) == pytest.approx(free.tag_covariance(t), rel=1e-6, abs=1e-15)
+
+
+def test_a_steps_marginals_from_one_joint_marginal_are_isam2s_own():
+    slam = _run()
+    slam._prefetch([0, 1, 2, 36, 37])
+    assert (slam.key(0), slam.key(36)) in slam._cov_blocks
+    for t in (0, 1, 2, 36, 37):
+        assert slam.tag_covariance(t) == pytest.approx(slam.isam.marginalCovariance(slam.key(t)), rel=1e-9, abs=1e-15)
+    got = slam._relative_covariance(0, 36)
+    slam._cov_blocks = {}
+    assert got == pytest.approx(slam._relative_covariance(0, 36), rel=1e-9, abs=1e-15)
+
+
+def test_the_residuals_in_one_pass_are_the_corner_factors_own():
+    # no semantic factors: the residuals are read at the estimate that first includes their factors
+    slam = SfGraphSlam(MODEL, SlamConfig(semantic=False, observation="corners", corner_sigma_px=0.05,
+                                         tag_scale_sigma=0.001),
+                       rig=GEOM, calibration=_calibration(), camera=(K, np.zeros(5)))
+    for cam, dets, motion in _steps()[0]:
+        slam.add_view(cam, dets, motion)
+    slam.update()
+    own = np.concatenate([np.asarray(slam.graph.at(f[0]).unwhitenedError(slam.estimate)) / f[1]
+                          for f in slam._corner_factors])
+    assert len(own) > 40 and slam._face_on_residuals == pytest.approx(own, abs=1e-9)
