@@ -27,7 +27,7 @@ stays, so tag observations remain plain C++ `BetweenFactorPose3`s and only one P
 view is added.  Its noise is the devices' repeatability, propagated to the camera at the prior.
 
 `corner_factor` is the reprojection of a tag's four corners through a pinhole camera whose
-intrinsics (Cal3_S2) are a variable too: the rig calibration survey (`estimation.rig_calibration`)
+intrinsics (Cal3_S2) are a variable too: the rig calibration survey (`estimation.rig_calibration_solve`)
 uses it to carry the focal length and principal point, which a pose measurement cannot separate
 from the tag's depth.  Corners come undistorted with the camera file's distortion, so the
 intrinsics here are the distortion-free part only.
@@ -49,7 +49,7 @@ import numpy as np
 
 from lab.core.config import CalibrationConfig, Rig
 from lab.core.geometry import Pose3, Rot3, from_xyzrpy
-from lab.core.rig_calibration import RigCalibration
+from lab.core.rig_calibration_file import RigCalibration
 
 AXIS, BASE, MOUNT, INTRINSICS, LIFT = (gtsam.symbol(c, 0) for c in "abmkl")
 # the true lens's radial distortion against the camera file's: (dk1, dk2), a 2-vector variable

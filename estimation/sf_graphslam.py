@@ -44,7 +44,7 @@ from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSIC
                                   undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.core.geometry import Pose3, Rot3
-from lab.core.rig_calibration import RigCalibration
+from lab.core.rig_calibration_file import RigCalibration
 from lab.core.structures.borg import BorgModel
 
 OBSERVATIONS = ("corners", "corner-info", "pose")

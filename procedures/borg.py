@@ -138,7 +138,7 @@ class BorgProcedure:
         self.calibration_source = f"the rig file {rig.source}'s nominal geometry"
         cal_file = calibration or rig.calibration.file
         if cal_file is not None:
-            from lab.core.rig_calibration import load_rig_calibration
+            from lab.core.rig_calibration_file import load_rig_calibration
             from lab.core.rig_calibration_check import check_for_rig
 
             self.rig_calibration = load_rig_calibration(cal_file)
@@ -343,7 +343,7 @@ class BorgProcedure:
         self.measure.tolerances = self.tolerances       # the run's tolerances, not the defaults
 
     def _solve_rig_survey(self, views: Any) -> Any:
-        from estimation.rig_calibration import solve_rig
+        from estimation.rig_calibration_solve import solve_rig
 
         tags = {t: (s.structure_T_tag, s.size_m) for t, s in self.model.tags.items() if s.module == "turntable"}
         sol = solve_rig(views, self.rig_geometry, self.intrinsics.dist, tags,
@@ -359,7 +359,7 @@ class BorgProcedure:
         """What the rig survey measured replaces the rig file's assumptions (unless given): the
         corner noise, the tags' scale scatter, and the devices' repeatability (the run's chain
         factors)."""
-        from estimation.rig_calibration import with_repeatability_scale
+        from estimation.rig_calibration_solve import with_repeatability_scale
 
         self.rig_geometry = with_repeatability_scale(self._datasheet_geometry, repeatability_scale)
         if not self._corner_sigma_given and math.isfinite(corner_sigma_px):
@@ -371,7 +371,7 @@ class BorgProcedure:
         return None if self.uncalibrated else self.rig_geometry
 
     def _rig_survey_report(self, sol: Any) -> dict[str, Any]:
-        from estimation.rig_calibration import describe
+        from estimation.rig_calibration_solve import describe
         from procedures.rig_survey import against_truth
 
         out: dict[str, Any] = {"views": sol.calibration.views, "rms_px": sol.calibration.rms_px,

@@ -12,7 +12,7 @@ import numpy as np
 from estimation.fiducials import Detection, TagDetector
 from estimation.rig_model import RigGeometry, ViewMotion
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
-from lab.core.rig_calibration import RigCalibration
+from lab.core.rig_calibration_file import RigCalibration
 from estimation.tag_elimination import eliminate_tags
 from estimation.verification import Tolerances, verify_module
 from lab.core.geometry import Pose3, from_xyzquat, to_xyzquat

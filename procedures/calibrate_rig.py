@@ -43,7 +43,7 @@ IMAGE_FORMAT = "jpeg"     # logged images (detection runs on the lossless frame)
 class RigCalibrationOutcome:
     """What the solve found; `written` only when the calibration was well conditioned."""
 
-    solution: Any = None                       # estimation.rig_calibration.RigSolution
+    solution: Any = None                       # estimation.rig_calibration_solve.RigSolution
     truth_error: dict[str, float] | None = None
     nees: dict[str, float] | None = None
     written: Path | None = None
@@ -208,7 +208,7 @@ class RigCalibrationProcedure:
             rec.log_text("warning", f"{spec.name}: no turntable tag seen in {len(views)} views")
 
     def _solve(self, run: RunContext) -> None:
-        from estimation.rig_calibration import Limits, solve_rig
+        from estimation.rig_calibration_solve import Limits, solve_rig
         from procedures.rig_survey import against_truth
 
         rec = run.recorder
@@ -270,7 +270,7 @@ def residual_stats(residuals_px: np.ndarray) -> dict[str, float]:
 
 def summary_json(proc: RigCalibrationProcedure, result: str, reason: str) -> dict[str, Any]:
     """summary.json, and the body of `lab calibrate rig --json`."""
-    from estimation.rig_calibration import describe
+    from estimation.rig_calibration_solve import describe
 
     r = proc.result
     out: dict[str, Any] = {"result": result, "reason": reason, "simulated": proc.bench.simulated,

@@ -28,7 +28,7 @@ from estimation.fiducials import tag_object_points
 from estimation.rig_model import RigGeometry, ViewMotion
 from estimation.tag_elimination import eliminate_tags
 from lab.core.geometry import Pose3
-from lab.core.rig_calibration import RigCalibration
+from lab.core.rig_calibration_file import RigCalibration
 from lab.core.structures.borg import BorgModel
 
 # 3 px at the rim's 2.2 m is 7 mm: a rig that far off puts every module's verdict off by about its

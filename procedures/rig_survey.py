@@ -1,5 +1,5 @@
 """The rig calibration survey: turntable angles x Stewart poses that see the turntable tags, moved
-to and photographed through the drivers, then solved by `estimation.rig_calibration`.
+to and photographed through the drivers, then solved by `estimation.rig_calibration_solve`.
 
 Used by `lab calibrate rig` and as the first step of a `lab run borg` whose rig has no calibration
 file.  The plan is made for observability: the mount is seen only through platform rotations, so
@@ -21,7 +21,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from estimation.rig_calibration import CalibrationView, TagSighting
+from estimation.rig_calibration_solve import CalibrationView, TagSighting
 from estimation.rig_model import ViewMotion
 
 _D = math.radians
@@ -202,7 +202,7 @@ def against_truth(calibration: Any, world: Any) -> tuple[dict[str, float], dict[
     """(errors, NEES) of a calibration against the simulated world's true rig: the mount and the
     base over 6 dof, the axis over its tilt and where it crosses the plate (yaw and height are the
     gauge).  Simulation only: the estimator never sees this."""
-    from estimation.rig_calibration import nees_report, truth_error
+    from estimation.rig_calibration_solve import nees_report, truth_error
     from estimation.rig_model import nees
 
     tr = world.true_rig

@@ -18,7 +18,7 @@ from drivers.camera import Frame, Intrinsics, load_calibration
 from lab.cli import build_parser, main
 from lab.core.config import load_rig
 from lab.core.errors import UserError
-from procedures.calibrate import (DEFAULT_BOARD, DEFAULT_MIN_CORNERS, DEFAULT_MIN_FRAMES, BoardDetector,
+from procedures.calibrate_camera import (DEFAULT_BOARD, DEFAULT_MIN_CORNERS, DEFAULT_MIN_FRAMES, BoardDetector,
                                   CalibrationSession, Detection, NotEnoughViews, calibrate, capture_live,
                                   parse_board)
 from procedures.runner import Operator

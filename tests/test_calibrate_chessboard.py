@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from lab.core.errors import UserError
-from procedures.calibrate import ChessboardSpec, CalibrationSession, parse_board, read_frames
+from procedures.calibrate_camera import ChessboardSpec, CalibrationSession, parse_board, read_frames
 
 DATA = Path(__file__).parent / "data" / "chessboard"
 # OpenCV's own calibration of the left camera, shipped beside the photographs (left_intrinsics.yml

@@ -21,7 +21,7 @@ from lab.core.config import load_rig
 from lab.core.geometry import Pose3, Rot3
 from lab.core.recorder import topics
 from lab.core.recorder.reader import iter_messages, read_summary
-from lab.core.rig_calibration import load_rig_calibration
+from lab.core.rig_calibration_file import load_rig_calibration
 from lab.core.scenario import Scenario
 from sim_devices.world import SimWorld
 
@@ -186,7 +186,7 @@ def test_oblique_sightings_left_out(incidence_deg, kept):
     import cv2
 
     from estimation.fiducials import tag_object_points
-    from estimation.rig_calibration import CalibrationView, TagSighting, drop_oblique, side_ratio
+    from estimation.rig_calibration_solve import CalibrationView, TagSighting, drop_oblique, side_ratio
     from estimation.rig_model import ViewMotion
 
     K = np.array([[914.0, 0, 639.5], [0, 914.0, 359.5], [0, 0, 1]])
@@ -224,7 +224,7 @@ def test_a_borg_run_starts_from_the_calibration_file_and_skips_the_survey(lab, s
 
 
 def test_the_survey_measures_the_devices_repeatability_and_the_file_keeps_it(survey):
-    from estimation.rig_calibration import REPEATABILITY_SCALE_RANGE
+    from estimation.rig_calibration_solve import REPEATABILITY_SCALE_RANGE
 
     cal = load_rig_calibration(survey["out"])
     lo, hi = REPEATABILITY_SCALE_RANGE

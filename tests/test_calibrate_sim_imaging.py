@@ -15,7 +15,7 @@ import pytest
 
 from lab.cli import main
 from lab.core.config import load_rig
-from procedures.calibrate import DEFAULT_BOARD, BoardDetector, parse_board
+from procedures.calibrate_camera import DEFAULT_BOARD, BoardDetector, parse_board
 from sim_devices.camera import encode_frame
 from sim_devices.charuco_render import (board_size_m, calibration_session, calibration_views, charuco_corners_px,
                                         imaged_calibration_session, render_charuco)

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from estimation.corner_noise import measured_corner_noise
-from estimation.rig_calibration import _measured_glue_sigma
+from estimation.rig_calibration_solve import _measured_glue_sigma
 from estimation.rig_model import GAUGE_SIGMA, AXIS, BASE, INTRINSICS, MOUNT, RigGeometry, cal3_s2, tag_prior_noise
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
 from lab.core.config import load_rig
 from lab.core.geometry import Pose3
-from lab.core.rig_calibration import RigCalibration, rig_calibration_from_json
+from lab.core.rig_calibration_file import RigCalibration, rig_calibration_from_json
 from lab.core.structures.borg import build_borg
 
 RIG = load_rig()

@@ -1,4 +1,4 @@
-"""The rig survey measures how its devices repeat (estimation/rig_calibration.py,
+"""The rig survey measures how its devices repeat (estimation/rig_calibration_solve.py,
 `_measured_repeatability_scale`): variance component estimation of the chain factors' group.  A
 rig file whose datasheet repeatability is half the truth would otherwise make the survey, and every
 run after it, too sure of the rig (camera-mount NEES 15-23 against 6 at twice the datasheet)."""
@@ -9,7 +9,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from estimation.rig_calibration import REPEATABILITY_SCALE_RANGE, _measured_repeatability_scale, with_repeatability_scale
+from estimation.rig_calibration_solve import REPEATABILITY_SCALE_RANGE, _measured_repeatability_scale, with_repeatability_scale
 from lab.core.geometry import Pose3
 
 C = gtsam.symbol_shorthand.C

@@ -15,7 +15,7 @@ from estimation.rig_model import (AXIS, BASE, DISTORTION, GAUGE_SIGMA, MOUNT, Ri
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
 from lab.core.config import load_rig
 from lab.core.geometry import Pose3, Rot3
-from lab.core.rig_calibration import RigCalibration
+from lab.core.rig_calibration_file import RigCalibration
 from lab.core.structures.borg import build_borg
 
 RIG = load_rig()

@@ -1,6 +1,6 @@
 """`lab calibrate camera` (ChArUco intrinsic calibration), `lab calibrate board` (a printable
 board) and `lab calibrate rig` (camera mount, Stewart base, turntable axis from a survey of the
-turntable tags).  docs/calibration.md; the work happens in procedures/calibrate.py and
+turntable tags).  docs/calibration.md; the work happens in procedures/calibrate_camera.py and
 procedures/calibrate_rig.py."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Any
 
 DEFAULT_OUT = "camera_calibration.json"
 DEFAULT_RIG_OUT = "rig_calibration.json"
-# procedures.calibrate holds the defaults; it imports OpenCV, so `lab --help` must not import it.
+# procedures.calibrate_camera holds the defaults; it imports OpenCV, so `lab --help` must not import it.
 # These strings only describe them (a test checks they agree).
 _HELP_BOARD = "9x6:30:22:DICT_5X5_100"
 _HELP_MIN_CORNERS = 10
@@ -108,8 +108,8 @@ def _camera(args: argparse.Namespace) -> int:
     from drivers.camera import Intrinsics, save_calibration
     from lab.core.config import load_rig
     from lab.core.errors import UserError
-    from procedures import calibrate as cal
-    from procedures.calibrate import CalibrationSession, capture_live, parse_board, read_frames
+    from procedures import calibrate_camera as cal
+    from procedures.calibrate_camera import CalibrationSession, capture_live, parse_board, read_frames
 
     board = parse_board(args.board or cal.DEFAULT_BOARD)
     min_corners = cal.DEFAULT_MIN_CORNERS if args.min_corners is None else args.min_corners
@@ -402,7 +402,7 @@ def _board(args: argparse.Namespace) -> int:
     import numpy as np
 
     from lab.core.errors import UserError
-    from procedures.calibrate import DEFAULT_BOARD, parse_board
+    from procedures.calibrate_camera import DEFAULT_BOARD, parse_board
 
     board = parse_board(args.board or DEFAULT_BOARD)
     if not hasattr(board, "make"):

@@ -78,7 +78,7 @@ def check_rig(path: str) -> RigReport:
                                     f"{ipjr.volts_retracted:.3f}..{ipjr.volts_extended:.3f} V"})
     borg_rig = rig.turntable is not None and rig.stewart is not None and rig.camera is not None
     if rig.calibration.file is not None:
-        from lab.core.rig_calibration import load_rig_calibration
+        from lab.core.rig_calibration_file import load_rig_calibration
         from lab.core.rig_calibration_check import check_for_rig
         from lab.core.structures.borg import build_borg
 

@@ -4,7 +4,7 @@ run make before anything moves (docs/hardware.md, "Rig calibration file").
 Two kinds:
 - `check_covariance`: every covariance in the file is finite, symmetric, positive definite, sanely
   conditioned, and claims a 1-sigma a survey could have measured (`SIGMA_RANGE`).  The reader
-  (lab/core/rig_calibration.py) applies it to each one as it parses the file.
+  (lab/core/rig_calibration_file.py) applies it to each one as it parses the file.
 - `check_fits_rig`: the values are physically possible and close to the rig file's nominal
   geometry -- the rough-measurement bounds of `lab.core.rig_error.ROUGH`, the one place they are
   stated -- and the file was made for this rig.
@@ -115,7 +115,7 @@ def check_for_rig(cal: Any, rig: Any, camera: Any, model: Any, src: str) -> None
 def check_fits_rig(cal: Any, *, rig_name: str, world_T_base: Pose3, platform_T_camera: Pose3, K: np.ndarray | None,
                    width_px: int, height_px: int, turntable_tags: Mapping[int, Pose3], src: str,
                    structure: str = "the structure") -> None:
-    """The calibration `cal` (lab.core.rig_calibration.RigCalibration) is for this rig and close to its
+    """The calibration `cal` (lab.core.rig_calibration_file.RigCalibration) is for this rig and close to its
     nominal geometry: the rig file's poses, the camera file's K and frame size (K None: not
     checked), the design's rim tags (structure frame).  One line naming the file, key and value,
     else nothing."""

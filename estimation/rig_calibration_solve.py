@@ -27,7 +27,7 @@ Two things keep the covariances honest (measured on rendered surveys, docs/calib
   components of their prior groups), and the lens's radial distortion error and each turntable
   tag's print scale are variables, so what the camera file and the printer got wrong is estimated
   rather than read as a rig error.
-The calibration keeps the joint posterior (lab/core/rig_calibration.py): a run takes it as one prior.
+The calibration keeps the joint posterior (lab/core/rig_calibration_file.py): a run takes it as one prior.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ from estimation.rig_model import (AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_
                                   ViewMotion, cal3_s2, chain_factor, corner_factor, nees, side_ratio, tag_prior_noise,
                                   undistort_px)
 from lab.core.geometry import Pose3, Rot3, to_xyzrpy
-from lab.core.rig_calibration import RigCalibration
+from lab.core.rig_calibration_file import RigCalibration
 
 C = gtsam.symbol_shorthand.C
 T = gtsam.symbol_shorthand.T
@@ -230,7 +230,7 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
     tt = set(turntable_tags)
     tag_poses = {t: est.atPose3(T(t)) for t in sorted(seen & tt)}
     tag_covs = {t: marg.marginalCovariance(T(t)) for t in tag_poses}
-    # the run's prior is this joint covariance, not the marginals (lab/core/rig_calibration.py)
+    # the run's prior is this joint covariance, not the marginals (lab/core/rig_calibration_file.py)
     joint = marg.jointMarginalCovariance(gtsam.KeyVector([AXIS, BASE, MOUNT, INTRINSICS, DISTORTION,
                                                           *(T(t) for t in tag_poses)])).fullMatrix()
     residuals = _residuals(views, est, K_und, dist, tags)
