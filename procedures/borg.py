@@ -128,6 +128,11 @@ class BorgProcedure:
         self.allow_unobservable = bool(allow_unobservable)
         self._unobservable_warned = False
         self._lift_at: float | None = None       # where the lift is known to be (None: not asked yet)
+        # where the turntable and the platform were last sent and arrived (None: not known, e.g. after
+        # homing, a resume or a move that did not finish): a view that wants them there again does
+        # not command them (a move of zero still costs its command, polls and settling)
+        self._turntable_at: float | None = None
+        self._stewart_at: tuple[float, ...] | None = None
         from estimation.rig_model import RigGeometry
         from procedures.borg_measure import Measurement
 
@@ -308,6 +313,7 @@ class BorgProcedure:
         uses_lift = any(self.planner.lift_heights) or (self.rig_survey and bool(self.rig_survey_plan.lift_m))
         lift_to_zero(self.bench, run, always=uses_lift)
         self._lift_at = 0.0 if self.bench.devices.lift is not None else None
+        self._turntable_at, self._stewart_at = None, None
         K, dist = self.intrinsics.K, self.intrinsics.dist
         run.recorder.log_calibration(topics.CAMERA_CALIBRATION, K, dist, self.intrinsics.width_px,
                                      self.intrinsics.height_px, "camera")
@@ -329,6 +335,9 @@ class BorgProcedure:
                                                                  format=IMAGE_FORMAT), overlap=True)
         if self.bench.devices.lift is not None:
             self._lift_at = self.rig_survey_plan.lift_m
+        if self.rig_survey_plan.views:
+            last = self.rig_survey_plan.views[-1]
+            self._turntable_at, self._stewart_at = last.turntable_rad, tuple(last.stewart_pose)
         self.rig_survey_views = views_to_json(views)
         t0 = time.perf_counter()
         sol = self._solve_rig_survey(views)
@@ -568,19 +577,29 @@ class BorgProcedure:
             raise StopRun(bad.reason)
 
     def _capture(self, run: RunContext, view: View, step: int, attempt: int, k: int):
+        from procedures.moves import Move, move_together
+
         devices = self.bench.devices
-        tt, st, cam = devices.turntable, devices.stewart, devices.camera
-        if devices.lift is not None and view.lift_m != self._lift_at:
-            self.bench.moved.add(devices.lift.name)
-            with run.move(f"lift to {view.lift_m * 1000:+.0f} mm") as progress:
-                devices.lift.move_to(view.lift_m, progress)
-            self._lift_at = view.lift_m
-        elif devices.lift is None and view.lift_m:
+        tt, st, cam, lift = devices.turntable, devices.stewart, devices.camera, devices.lift
+        if lift is None and view.lift_m:
             raise UserError(f"view {view.label} needs a lift and rig {self.bench.rig.name!r} has none")
-        with run.move(f"turntable to {np.degrees(view.turntable_rad):+.0f} deg") as progress:
-            tt.move_to(view.turntable_rad, progress)
-        with run.move("Stewart platform") as progress:
-            st.move_to(view.stewart_pose, progress)
+        # the devices that must move for this view move at once (procedures/moves.py): a failure of
+        # one stops the others; where each is is known again only once all have arrived
+        moves = []
+        if lift is not None and view.lift_m != self._lift_at:
+            self.bench.moved.add(lift.name)
+            moves.append(Move(lift, f"lift to {view.lift_m * 1000:+.0f} mm",
+                              lambda progress: lift.move_to(view.lift_m, progress)))
+        if view.turntable_rad != self._turntable_at:
+            moves.append(Move(tt, f"turntable to {np.degrees(view.turntable_rad):+.0f} deg",
+                              lambda progress: tt.move_to(view.turntable_rad, progress)))
+        if tuple(view.stewart_pose) != self._stewart_at:
+            moves.append(Move(st, "Stewart platform", lambda progress: st.move_to(view.stewart_pose, progress)))
+        if moves:
+            self._lift_at, self._turntable_at, self._stewart_at = None, None, None
+            move_together(run, moves)
+            self._lift_at = view.lift_m if lift is not None else None
+            self._turntable_at, self._stewart_at = view.turntable_rad, tuple(view.stewart_pose)
         if self.bench.simulated:
             # the simulated camera's noise for this view depends only on (seed, step, attempt, view)
             self.bench.sim.world.reseed_camera([self.bench.scenario.seed, _STREAM_CAMERA, step, attempt, k])

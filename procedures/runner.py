@@ -141,10 +141,15 @@ class RunContext:
             update(1.0)
 
 
-def _atomic_write_json(path: Path, value: Any) -> None:
+def _atomic_write_json(path: Path, value: Any, *, readable: bool = True) -> None:
+    """`readable=False` for the checkpoint, which only a resume reads and which grows with every
+    view: without indent the C encoder writes it in one call (the indented encoder is Python, ~90 ms
+    a step for the README job's 1.8 MB checkpoint by the end)."""
     tmp = path.with_suffix(path.suffix + ".tmp")
+    text = json.dumps(value, indent=1 if readable else None, separators=None if readable else (",", ":"),
+                      default=_json_default)
     with open(tmp, "w") as f:
-        json.dump(value, f, indent=1, default=_json_default)
+        f.write(text)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
@@ -249,7 +254,7 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
                 with shield.held():   # a checkpoint is written whole or not at all
                     _atomic_write_json(run_dir / CHECKPOINT, {
                         "steps_completed": step.index + 1, "last_step": step.name,
-                        "state": procedure.checkpoint(), "time": time.time()})
+                        "state": procedure.checkpoint(), "time": time.time()}, readable=False)
                     _atomic_write_json(run_dir / SUMMARY, procedure.summary("running", ""))
                 bar.update(1)
                 if step is not steps[-1]:
