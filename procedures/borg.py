@@ -516,32 +516,29 @@ class BorgProcedure:
 
     def _measure_round(self, spec: StepSpec, run: RunContext, name: str, attempt: int, rnd: int,
                        views_planned: list[View], first_k: int) -> Verdict:
+        from concurrent.futures import Future, ThreadPoolExecutor
+
         rec = run.recorder
-        views = []
-        for j, view in enumerate(views_planned):
-            k = first_k + j
-            frame, world_T_camera = self._capture(run, view, spec.index, attempt, k)
-            t = frame.t_s
-            rec.log_image(topics.CAMERA_IMAGE, frame.image, t, "camera", format=IMAGE_FORMAT)
-            structure_T_camera = self.model.world_T_structure(view.turntable_rad).inverse().compose(world_T_camera)
-            rec.log_transform("world", "structure", self.model.world_T_structure(view.turntable_rad), t)
-            rec.log_transform("world", "camera", world_T_camera, t)
-            detections = self.measure.detect(frame.image, structure_T_camera)
-            rec.log_record(topics.DETECTIONS, self.measure.detections_message(detections, t))
-            record = {"module": name, "step": spec.index, "attempt": attempt, "round": rnd, "view": k,
-                      "turntable_rad": view.turntable_rad, "stewart_pose": list(view.stewart_pose),
-                      "lift_m": view.lift_m,
-                      "structure_T_camera": structure_T_camera.matrix().tolist(),
-                      "detections": self.measure.detections_to_json(detections)}
-            if self.bench.simulated:
-                # truth, for scoring and the bound only (the estimator never reads it); kept in the
-                # view's record so that a resumed run can still score its later steps
-                world = self.bench.sim.world
-                true_camera = world.world_T_structure().inverse().compose(world.world_T_camera())
-                record["truth"] = {"structure_T_camera": true_camera.matrix().tolist(),
-                                   "corner_sq_px2": _corner_errors_sq(world, detections, self.measure.detector_camera)}
-                self._take_truth(record)
-            views.append(record)
+        # a view's frame is detected and logged in one worker thread while the devices move on to
+        # the next view (in view order; the recorder is thread-safe): the round then costs its moves
+        # and one detection, not its moves plus every detection
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="borg-detect")
+        pending: list[Future[dict[str, Any]]] = []
+        try:
+            for j, view in enumerate(views_planned):
+                k = first_k + j
+                frame, world_T_camera = self._capture(run, view, spec.index, attempt, k)
+                # truth, for scoring and the bound only (the estimator never reads it), taken now:
+                # the world moves on with the devices
+                truth = self._truth_at_capture() if self.bench.simulated else None
+                pending.append(pool.submit(self._view_record, rec, view, frame, world_T_camera, truth,
+                                           {"module": name, "step": spec.index, "attempt": attempt, "round": rnd,
+                                            "view": k}))
+            views = [f.result() for f in pending]       # a worker's exception is raised here
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+        for record in views:
+            self._take_truth(record)
         self.views_done.extend(views)
         self._check_rig_agrees(views)
         t0 = time.perf_counter()
@@ -554,6 +551,34 @@ class BorgProcedure:
         for pose, cov in self.measure.camera_estimates():
             rec.log_pose(topics.estimate_topic("camera"), pose, "structure", covariance6x6=cov)
         return result
+
+    def _truth_at_capture(self) -> dict[str, Any]:
+        world = self.bench.sim.world
+        return {"structure_T_camera": world.world_T_structure().inverse().compose(world.world_T_camera()),
+                "camera": world.camera, "tags": world.tags_in_view()}
+
+    def _view_record(self, rec: Any, view: View, frame: Any, world_T_camera: Any, truth: dict[str, Any] | None,
+                     ids: dict[str, Any]) -> dict[str, Any]:
+        """Detect one view's frame, log it, and make its record (what the graph, the checkpoint and a
+        resume read)."""
+        t = frame.t_s
+        rec.log_image(topics.CAMERA_IMAGE, frame.image, t, "camera", format=IMAGE_FORMAT)
+        world_T_structure = self.model.world_T_structure(view.turntable_rad)
+        structure_T_camera = world_T_structure.inverse().compose(world_T_camera)
+        rec.log_transform("world", "structure", world_T_structure, t)
+        rec.log_transform("world", "camera", world_T_camera, t)
+        detections = self.measure.detect(frame.image, structure_T_camera)
+        rec.log_record(topics.DETECTIONS, self.measure.detections_message(detections, t))
+        record = {**ids, "turntable_rad": view.turntable_rad, "stewart_pose": list(view.stewart_pose),
+                  "lift_m": view.lift_m,
+                  "structure_T_camera": structure_T_camera.matrix().tolist(),
+                  "detections": self.measure.detections_to_json(detections)}
+        if truth is not None:
+            # kept in the view's record so that a resumed run can still score its later steps
+            record["truth"] = {"structure_T_camera": truth["structure_T_camera"].matrix().tolist(),
+                               "corner_sq_px2": _corner_errors_sq(truth["camera"], truth["tags"], detections,
+                                                                  self.measure.detector_camera)}
+        return record
 
     def _check_rig_agrees(self, views: list[dict[str, Any]]) -> None:
         """Before the round's views reach the graph: the rim tags where the calibration puts them,
@@ -748,17 +773,18 @@ def parse_tolerances(items: list[str], config: VerificationConfig) -> Tolerances
     return Tolerances(**tol)
 
 
-def _corner_errors_sq(world: Any, detections: list, camera: tuple[np.ndarray, np.ndarray]) -> list[float]:
+def _corner_errors_sq(cam: Any, tags_in_view: list, detections: list,
+                      camera: tuple[np.ndarray, np.ndarray]) -> list[float]:
     """Simulation: squared pixel errors (u and v apart) of the detected corners against the true
-    projection, each sighting's scaled to face-on by the graph's obliquity model; too oblique
-    sightings, which the graph leaves out, are left out here too."""
+    projection (`cam`: the world's true camera, `tags_in_view`: its (id, size, camera_T_tag) when
+    the frame was taken), each sighting's scaled to face-on by the graph's obliquity model; too
+    oblique sightings, which the graph leaves out, are left out here too."""
     import cv2
 
     from estimation.fiducials import tag_object_points
     from estimation.rig_model import MIN_SIDE_RATIO, OBLIQUE_EXPONENT, side_ratio
 
-    cam = world.camera
-    truth = {tid: (size, pose) for tid, size, pose in world.tags_in_view()}
+    truth = {tid: (size, pose) for tid, size, pose in tags_in_view}
     out: list[float] = []
     for d in detections:
         if d.tag_id not in truth:

@@ -105,7 +105,8 @@ def _stop_others(moves: Sequence[Move], finished: list[bool], lock: threading.Lo
     """STOP every device whose move has not returned (but `skip`, already stopped by its driver),
     then join their threads; returns what happened to each, in words."""
     with lock:
-        running = [i for i in range(len(moves)) if not finished[i] and i != skip]
+        # a thread an abort kept from starting never commanded its device
+        running = [i for i in range(len(moves)) if not finished[i] and i != skip and threads[i].ident is not None]
     said = [f"{moves[i].device.name}: {stop_quietly(moves[i].device.name, moves[i].device.stop)}" for i in running]
     for i in running:
         threads[i].join(JOIN_S)

@@ -101,3 +101,20 @@ def test_one_move_needs_no_thread():
     move_together(run, [Move(a, "turntable", go)])
     move_together(run, [])
     assert seen == [True] and run.bars == ["turntable"]
+
+
+def test_an_abort_before_every_move_has_started_stops_what_started(monkeypatch):
+    a, b = Axis("turntable"), Axis("stewart")
+    starts = []
+    real_start = threading.Thread.start
+
+    def start(self):
+        starts.append(self.name)
+        if len(starts) == 2:
+            raise KeyboardInterrupt("signal 2")     # the second Ctrl-C, between the two starts
+        real_start(self)
+
+    monkeypatch.setattr(threading.Thread, "start", start)
+    with pytest.raises(KeyboardInterrupt):
+        move_together(Run(), [Move(a, "turntable", a.go), Move(b, "Stewart platform", b.go)])
+    assert a.stops == 1 and b.stops == 0
