@@ -36,6 +36,7 @@ from lab.core.geometry import pose_error
 from lab.core.recorder import messages as m
 from lab.core.recorder import topics
 from lab.core.structures.borg import BorgModel, build_borg
+from lab.core.survey_budget import check_max_views, check_sigma_target_mm
 from lab.core.verdicts import FLAGGED, UNCERTAIN, UNVERIFIED, Bound, TruthError, Verdict
 from procedures.console import BORG_HEADER, borg_row, console_of, more_views_line
 from procedures.runner import RunContext, StepSpec, StopRun
@@ -103,10 +104,10 @@ class BorgProcedure:
                                      (rig.turntable.min_rad, rig.turntable.max_rad), lift_limits_m=lift)
         ver = rig.verification
         self.tolerances = parse_tolerances(tolerances or [], ver)
-        if sigma_target_mm is not None and not (math.isfinite(sigma_target_mm) and 0 < sigma_target_mm <= 100):
-            raise UserError(f"--sigma-target-mm must be in (0, 100] mm, got {sigma_target_mm}")
-        if max_views is not None and not 1 <= max_views <= 200:
-            raise UserError(f"--max-views must be in 1..200, got {max_views}")
+        if sigma_target_mm is not None:
+            check_sigma_target_mm(sigma_target_mm)
+        if max_views is not None:
+            check_max_views(max_views)
         estimator_config = dict(estimator_config or {})
         # the graph's corner noise: as given, else what the rig calibration measured, else the rig's
         # [verification] value until a survey measures it

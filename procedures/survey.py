@@ -31,6 +31,7 @@ from estimation.fiducials import tag_object_points
 from estimation.precision import covariance_from_information, module_sigma, view_information
 from lab.core.geometry import Pose3, Rot3, from_xyzrpy
 from lab.core.structures.borg import BorgModel
+from lab.core.survey_budget import MAX_VIEWS, SIGMA_TARGET_MM
 
 
 def unoccluded(lo: np.ndarray, hi: np.ndarray, rows: np.ndarray, overlap: float) -> np.ndarray:
@@ -119,8 +120,8 @@ class CameraModel:
 class PrecisionTarget:
     """What the accuracy pass aims at and what it assumes."""
 
-    sigma_m: float = 0.00025              # the new module's position 1-sigma to reach
-    max_views: int = 12                   # views per step, coverage views included
+    sigma_m: float = SIGMA_TARGET_MM * 1e-3   # the new module's position 1-sigma to reach
+    max_views: int = MAX_VIEWS                # views per step, coverage views included
     corner_sigma_px: float = 0.02         # the graph's corner noise (SlamConfig.corner_sigma_px)
     # the camera pose as the graph knows it relative to the structure, per view (treated as
     # independent between views: the prediction is of the views' own contribution)

@@ -8,6 +8,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from lab.core.survey_budget import MAX_VIEWS, MAX_VIEWS_RANGE, SIGMA_TARGET_MM, SIGMA_TARGET_MM_MAX
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run an assembly procedure (simulated devices with the default rig)")
@@ -39,13 +41,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "closeout_square or all; repeatable; default: the rig's [verification] table, else 5 mm, 1 deg)")
     b.add_argument("--sigma-target-mm", type=float, default=None, metavar="MM",
                    help="plan each step's views until the new module's predicted position 1-sigma is this small "
-                        "(default: the rig's [verification] sigma_target_mm, else 0.25)")
+                        f"(in (0, {SIGMA_TARGET_MM_MAX:g}] mm; default: the rig's [verification] sigma_target_mm, "
+                        f"else {SIGMA_TARGET_MM:g})")
     b.add_argument("--allow-unobservable", action="store_true",
                    help="run even if the rig cannot see some modules (listed at the start; reported unverified) "
                         "instead of refusing before anything moves")
     b.add_argument("--max-views", type=int, default=None, metavar="N",
-                   help="view budget per step, extra views for an uncertain verdict included (default: the rig's "
-                        "[verification] max_views, else 12)")
+                   help=f"view budget per step, extra views for an uncertain verdict included "
+                        f"({MAX_VIEWS_RANGE[0]}..{MAX_VIEWS_RANGE[1]}; default: the rig's [verification] max_views, "
+                        f"else {MAX_VIEWS})")
     b.set_defaults(func=_run_borg)
 
     t = rsub.add_parser("truss", help="IPJR truss assembly with MLE / EKF / open-loop correction")

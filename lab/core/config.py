@@ -24,6 +24,7 @@ from lab.core.errors import UserError
 from lab.core.geometry import Pose3, from_xyzrpy
 from lab.core import rig_error as rig_errors   # the record is RigError too, like this module's exception
 from lab.core.imaging import RIG_CAMERA_KEYS, Imaging, parse_imaging
+from lab.core.survey_budget import MAX_VIEWS, MAX_VIEWS_RANGE, SIGMA_TARGET_MM, SIGMA_TARGET_MM_MAX
 
 DeviceKind = Literal["turntable", "stewart", "lift", "camera", "ipjr"]
 
@@ -182,10 +183,10 @@ class VerificationConfig:
 
     tolerances: dict[str, ToleranceConfig] = field(default_factory=lambda: {k: ToleranceConfig() for k in MODULE_KINDS})
     band_sigmas: float = 2.0
-    # The planner adds views until the new module's predicted position 1-sigma is this small: at
-    # 0.25 mm a module 1 mm past a 5 mm tolerance (or 2 mm past 1 mm) is 4 sigma clear of it
-    sigma_target_m: float = 0.00025
-    max_views: int = 12
+    # the planner adds views until the new module's predicted position 1-sigma is this small, within
+    # the step's view budget (lab/core/survey_budget.py: why these defaults)
+    sigma_target_m: float = SIGMA_TARGET_MM * 1e-3
+    max_views: int = MAX_VIEWS
     # the detector's face-on corner accuracy on this rig's camera, what the graph assumes (measure
     # it: a simulated run reports corner_rms_px against the truth, `lab calibrate rig` its residual)
     corner_sigma_px: float = 0.02
@@ -204,8 +205,10 @@ def _verification(t: "_Table") -> VerificationConfig:
                                                                  maximum=90.0)))
         k.done()
     cfg = VerificationConfig(tolerances, t.number("band_sigmas", default=2.0, minimum=0.0, maximum=10.0),
-                             t.number("sigma_target_mm", default=0.25, positive=True, maximum=100.0) * 1e-3,
-                             t.integer("max_views", default=12, minimum=1, maximum=200),
+                             t.number("sigma_target_mm", default=SIGMA_TARGET_MM, positive=True,
+                                      maximum=SIGMA_TARGET_MM_MAX) * 1e-3,
+                             t.integer("max_views", default=MAX_VIEWS, minimum=MAX_VIEWS_RANGE[0],
+                                       maximum=MAX_VIEWS_RANGE[1]),
                              t.number("corner_sigma_px", default=0.02, positive=True, maximum=5.0),
                              t.number("tag_scale_percent", default=0.1, minimum=0.0, maximum=5.0) * 1e-2)
     t.done()

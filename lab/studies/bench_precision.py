@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lab.core.survey_budget import MAX_VIEWS, SIGMA_TARGET_MM
+
 # offsets (mm) and rotations (deg) around each tolerance, finer near it
 CASES_DEFAULT = ([0.0, 4.0, 5.0, 5.5, 6.0, 6.5, 7.0, 8.0, 10.0], [0.5, 0.75, 1.0, 1.25, 1.5, 2.0])
 CASES_TIGHT = ([0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0], [0.1, 0.2, 0.3, 0.4])
@@ -41,8 +43,8 @@ class PrecisionSetup:
     camera_sigma_m: float = 0.0001
     camera_sigma_rad: float = math.radians(0.005)
     views_per_step: int = 3
-    sigma_target_m: float = 0.00025      # views are planned until the module's predicted 1-sigma is this
-    max_views: int = 12
+    sigma_target_m: float = SIGMA_TARGET_MM * 1e-3   # views are planned until the module's predicted 1-sigma is this
+    max_views: int = MAX_VIEWS
     tolerance_m: float = 0.005
     tolerance_rad: float = math.radians(1.0)
     observation: str = "corners"         # how sightings enter the graph (SlamConfig.observation)

@@ -35,6 +35,7 @@ import math
 import os
 import time
 
+from lab.core.survey_budget import MAX_VIEWS, MAX_VIEWS_RANGE, SIGMA_TARGET_MM
 from lab.studies.bench_common import save_figure
 
 STUDIES = ("deployable", "closeout_strut", "closeout_square", "partial_deploy", "borg_face1", "tag_elimination",
@@ -58,9 +59,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--corner-sigma-px", type=float, default=None, metavar="PX",
                         help="precision: the true face-on corner noise (default 0.01; simulated runs measure 0.008)")
     parser.add_argument("--sigma-target-mm", type=float, default=None, metavar="MM",
-                        help="precision: plan each step's views to this module 1-sigma (default 0.25, as a run)")
+                        help=f"precision: plan each step's views to this module 1-sigma (default {SIGMA_TARGET_MM:g}, "
+                             f"as a run)")
     parser.add_argument("--max-views", type=int, default=None, metavar="N",
-                        help="precision: view budget per step (default 12, as a run)")
+                        help=f"precision: view budget per step ({MAX_VIEWS_RANGE[0]}..{MAX_VIEWS_RANGE[1]}, "
+                             f"default {MAX_VIEWS}, as a run)")
     from lab.core.executor import add_executor_arguments
 
     add_executor_arguments(parser)   # the precision study's trials (the others run here)
@@ -562,22 +565,19 @@ def _study_precision(trials: int, seed: int, args: argparse.Namespace, runner) -
     import math
     from dataclasses import replace
 
-    from lab.studies import bench_precision as bp
     from lab.core.errors import UserError
+    from lab.core.survey_budget import check_max_views, check_sigma_target_mm
+    from lab.studies import bench_precision as bp
 
     setup = bp.PrecisionSetup()
     if args.corner_sigma_px is not None:
         if not (math.isfinite(args.corner_sigma_px) and 0 < args.corner_sigma_px <= 5):
             raise UserError(f"--corner-sigma-px must be in (0, 5], got {args.corner_sigma_px}")
         setup = replace(setup, corner_sigma_px=args.corner_sigma_px)
-    if args.sigma_target_mm is not None:
-        if not (math.isfinite(args.sigma_target_mm) and 0 < args.sigma_target_mm <= 100):
-            raise UserError(f"--sigma-target-mm must be in (0, 100], got {args.sigma_target_mm}")
-        setup = replace(setup, sigma_target_m=args.sigma_target_mm / 1000)
+    if args.sigma_target_mm is not None:     # the same ranges as a run's (lab/core/survey_budget.py)
+        setup = replace(setup, sigma_target_m=check_sigma_target_mm(args.sigma_target_mm) / 1000)
     if args.max_views is not None:
-        if not 3 <= args.max_views <= 200:
-            raise UserError(f"--max-views must be in 3..200, got {args.max_views}")
-        setup = replace(setup, max_views=args.max_views)
+        setup = replace(setup, max_views=check_max_views(args.max_views))
     tight = replace(setup, tolerance_m=0.001, tolerance_rad=math.radians(0.2))
     out = {"default": bp.study(trials, seed, setup, bp.CASES_DEFAULT, "default", runner),
            "tight": bp.study(trials, seed + 1, tight, bp.CASES_TIGHT, "tight", runner)}
