@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 
-from estimation.sf_graphslam import SlamConfig
 from estimation.verification import Tolerance, Tolerances
 from lab.core.config import MODULE_KINDS, VerificationConfig
 from lab.core.errors import UserError

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from lab.core.executor import Trial, add_executor_arguments
+from lab.core.verdicts import FLAGGED, UNCERTAIN, UNVERIFIED
 from lab.studies.bench_common import report_study, run_trial_study, study_size
 
 # Faults among the first 9 modules, so --quick sees them all: a partial deployment and a 15 mm
@@ -61,7 +62,7 @@ kind = "module_offset"
 module = "8S"
 offset_m = [0.002, 0.0, 0.0]
 """
-EXPECT = {"3D": "flagged", "7S": "flagged", "9S": "unverified"}
+EXPECT = {"3D": FLAGGED, "7S": FLAGGED, "9S": UNVERIFIED}
 MODES = {"calibrated": [], "calibrated-pose": ["--observation", "pose"],
          "uncalibrated": ["--uncalibrated", "--observation", "pose"]}
 
@@ -116,10 +117,10 @@ def trial(out: Path, seed: int, scale: float, mode: str, modules: int, speedup: 
     good = [m for m in mods if m["name"] not in EXPECT]
     res: dict[str, Any] = {
         "seed": seed, "scale": scale, "mode": mode, "result": s["result"], "wall_s": wall,
-        "good": len(good), "false_flags": sum(m["verdict"] == "flagged" for m in good),
-        "false_flagged": [m["name"] for m in good if m["verdict"] == "flagged"],
+        "good": len(good), "false_flags": sum(m["verdict"] == FLAGGED for m in good),
+        "false_flagged": [m["name"] for m in good if m["verdict"] == FLAGGED],
         # a good module the run could not decide (uncertain) or could not see (unverified)
-        "undecided": sum(m["verdict"] in ("uncertain", "unverified") for m in good),
+        "undecided": sum(m["verdict"] in (UNCERTAIN, UNVERIFIED) for m in good),
         "faults_caught": sum(1 for m in mods if m["name"] in EXPECT and m["verdict"] == EXPECT[m["name"]]),
         "faults": sum(1 for m in mods if m["name"] in EXPECT),
         "position_errors_m": [m["position_error_m"] for m in good if m["position_error_m"] is not None],

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lab.core.survey_budget import MAX_VIEWS, SIGMA_TARGET_MM
+from lab.core.verdicts import FLAGGED, UNCERTAIN, VERDICTS
 
 # offsets (mm) and rotations (deg) around each tolerance, finer near it
 CASES_DEFAULT = ([0.0, 4.0, 5.0, 5.5, 6.0, 6.5, 7.0, 8.0, 10.0], [0.5, 0.75, 1.0, 1.25, 1.5, 2.0])
@@ -194,7 +195,7 @@ def trial(kind: str, size: float, target: str, seed: int, setup: PrecisionSetup,
             v = verify_module(model, name, est, covariances=covs, rejected=rejected,
                               not_deployed=slam.not_deployed(), tolerances=tols)
             budget = setup.max_views - taken
-            if v.verdict != "uncertain" or budget <= 0 or not v.tags_used:
+            if v.verdict != UNCERTAIN or budget <= 0 or not v.tags_used:
                 break
             # the next views: most information about the verdict tag, from what the graph knows,
             # aiming at the sigma that clears the band (never looser than the plan's target)
@@ -262,7 +263,7 @@ def study(trials: int, seed: int, setup: PrecisionSetup | None = None, cases=CAS
     good = {"n": 0, "flagged": 0, "uncertain": 0, "errors_m": [], "errors_rad": [], "bound_rms_m": [],
             "bound_rad": [], "views": []}
     for ci, (kind, size) in enumerate(case_list):
-        counts = {"ok": 0, "flagged": 0, "uncertain": 0, "unverified": 0}
+        counts = dict.fromkeys(VERDICTS, 0)
         views = []
         for k in range(trials):
             target = TARGETS[k % len(TARGETS)]
@@ -274,8 +275,8 @@ def study(trials: int, seed: int, setup: PrecisionSetup | None = None, cases=CAS
                     views.append(r["views"])
                     continue
                 good["n"] += 1
-                good["flagged"] += r["verdict"] == "flagged"
-                good["uncertain"] += r["verdict"] == "uncertain"
+                good["flagged"] += r["verdict"] == FLAGGED
+                good["uncertain"] += r["verdict"] == UNCERTAIN
                 good["views"].append(r["views"])
                 if r["error_m"] is not None:
                     good["errors_m"].append(r["error_m"])

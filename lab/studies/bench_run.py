@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from lab.core.verdicts import FLAGGED, OK, UNVERIFIED
+
 SCENARIO_FAULTS = Path(__file__).resolve().parents[2] / "docs" / "scenarios" / "structure_faults.toml"
 TETRAHELIX_NOISE = "seed = 3\n[truss]\nsigma_length_m = 0.1\nsigma_measure_m = 0.01\n"
 
@@ -84,11 +86,11 @@ def run(args: argparse.Namespace) -> int:
     verdicts = {m["name"]: m["verdict"] for m in s["modules"]}
     figures["borg"] = {"modules": s["steps"], "views": s.get("views"), "wall_s": round(wall, 2),
                        "result": s["result"], "target_wall_s": 120,
-                       "flagged": sorted(n for n, v in verdicts.items() if v == "flagged"),
-                       "unverified": sorted(n for n, v in verdicts.items() if v == "unverified"),
+                       "flagged": sorted(n for n, v in verdicts.items() if v == FLAGGED),
+                       "unverified": sorted(n for n, v in verdicts.items() if v == UNVERIFIED),
                        "rejected_tags": s["rejected_tags"],
                        "max_position_error_m": max((m["position_error_m"] or 0.0) for m in s["modules"]
-                                                   if m["verdict"] == "ok"),
+                                                   if m["verdict"] == OK),
                        "slam_update_s_median": _median_metric(borg_dir / "run.mcap", "slam/update_s")}
     sc = out / f"tetrahelix-{stamp}.toml"
     sc.write_text(TETRAHELIX_NOISE)

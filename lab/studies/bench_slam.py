@@ -36,6 +36,7 @@ import os
 import time
 
 from lab.core.survey_budget import MAX_VIEWS, MAX_VIEWS_RANGE, SIGMA_TARGET_MM
+from lab.core.verdicts import FLAGGED
 from lab.studies.bench_common import save_figure
 
 STUDIES = ("deployable", "closeout_strut", "closeout_square", "partial_deploy", "borg_face1", "tag_elimination",
@@ -526,8 +527,8 @@ def study_verification(trials: int, seed: int) -> dict:
                 verdicts, est = _verify_run(model, modules, sv, semantic, after)
                 dt = (time.perf_counter() - t0) / len(modules)
                 acc.setdefault(m, _Acc()).add(est, sv, dt)
-                flags[m][f"{kind}:{size:g}"] += int(verdicts[target] == "flagged")
-                false_flags[m] += sum(v == "flagged" for n, v in verdicts.items() if n != target)
+                flags[m][f"{kind}:{size:g}"] += int(verdicts[target] == FLAGGED)
+                false_flags[m] += sum(v == FLAGGED for n, v in verdicts.items() if n != target)
             good_checks += len(modules) - 1
     out = _finish(acc)
     for m in methods:

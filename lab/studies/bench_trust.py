@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from lab.core.executor import Trial, add_executor_arguments
+from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED
 from lab.core.imaging import IDEAL, scenario_tables
 from lab.studies.bench_common import report_study, run_trial_study, study_size
 
@@ -122,11 +123,11 @@ def trial(out: Path, seed: int, scale: float, camera: str, modules: int, speedup
     survey = s.get("rig_survey") or {}
     return {
         "seed": seed, "scale": scale, "camera": camera, "result": s["result"], "wall_s": wall,
-        "good": len(good), "false_flags": sum(m["verdict"] == "flagged" for m in good),
-        "false_flagged": [m["name"] for m in good if m["verdict"] == "flagged"],
-        "undecided": sum(m["verdict"] in ("uncertain", "unverified") for m in good),
-        "faults": len(faults), "faults_caught": sum(m["verdict"] == "flagged" for m in faults),
-        "faults_passed": [m["name"] for m in faults if m["verdict"] == "ok"],
+        "good": len(good), "false_flags": sum(m["verdict"] == FLAGGED for m in good),
+        "false_flagged": [m["name"] for m in good if m["verdict"] == FLAGGED],
+        "undecided": sum(m["verdict"] in (UNCERTAIN, UNVERIFIED) for m in good),
+        "faults": len(faults), "faults_caught": sum(m["verdict"] == FLAGGED for m in faults),
+        "faults_passed": [m["name"] for m in faults if m["verdict"] == OK],
         "position_errors_m": [m["position_error_m"] for m in read],
         "sigmas_m": [m["sigma_position_m"] for m in read],
         "nees": [m["position_nees"] for m in read if m.get("position_nees") is not None],
