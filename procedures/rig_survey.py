@@ -23,6 +23,7 @@ import numpy as np
 
 from estimation.rig_calibration_solve import CalibrationView, TagSighting
 from estimation.rig_model import ViewMotion
+from procedures.moves import Move, move_together
 
 _D = math.radians
 # Relative to home: (x, y, z, roll, pitch, yaw); pitch 10 deg puts the near rim tags mid-image.
@@ -156,19 +157,22 @@ def capture(bench: Any, run: Any, plan: RigSurveyPlan, detector: Any, *, seed: S
         for k, view in enumerate(plan.views):
             # a device already where the view wants it is not commanded again: a move of zero still
             # costs its command, settling and polls (about 4 s of a 96-view survey at speed-up 10)
+            # the devices this view moves move at once (procedures/moves.py), as a run's views do
+            moves = []
             if lift is not None and (last is None or view.lift_m != last.lift_m):
                 # asked first after a resume: a lift already there is not commanded (a move of zero
                 # is still a move, and a lift that never moved is exactly where the rig file says)
                 if last is not None or abs(lift.position() - view.lift_m) > 1e-5:
                     bench.moved.add(lift.name)
-                    with run.move(f"rig survey: lift to {view.lift_m * 1000:+.0f} mm") as progress:
-                        lift.move_to(view.lift_m, progress)
+                    moves.append(Move(lift, f"rig survey: lift to {view.lift_m * 1000:+.0f} mm",
+                                      lambda progress, h=view.lift_m: lift.move_to(h, progress)))
             if last is None or view.turntable_rad != last.turntable_rad:
-                with run.move(f"rig survey: turntable {math.degrees(view.turntable_rad):+.0f} deg") as progress:
-                    tt.move_to(view.turntable_rad, progress)
+                moves.append(Move(tt, f"rig survey: turntable {math.degrees(view.turntable_rad):+.0f} deg",
+                                  lambda progress, a=view.turntable_rad: tt.move_to(a, progress)))
             if last is None or tuple(view.stewart_pose) != tuple(last.stewart_pose):
-                with run.move("rig survey: Stewart platform") as progress:
-                    st.move_to(view.stewart_pose, progress)
+                moves.append(Move(st, "rig survey: Stewart platform",
+                                  lambda progress, p=view.stewart_pose: st.move_to(p, progress)))
+            move_together(run, moves)
             last = view
             if bench.simulated:
                 bench.sim.world.reseed_camera([*seed, k])
