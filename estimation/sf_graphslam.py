@@ -578,16 +578,18 @@ class SfGraphSlam:
     def _moved_past_threshold(self, held: gtsam.KeyList) -> bool:
         """Whether iSAM2's next update would relinearise anything: a variable, other than the
         `held` ones, whose linear delta reaches the relinearisation threshold in any component
-        (ISAM2's own test, with the scalar threshold)."""
-        delta = gtsam.VectorValues(self.isam.getDelta())
-        zero = gtsam.VectorValues()
-        for key in set(held):
-            if delta.exists(key):
-                zero.insert(key, np.zeros(delta.at(key).size))
-        if zero.size():
-            delta.update(zero)
-        v = delta.vector()
-        return v.size > 0 and float(np.abs(v).max()) >= self.config.relinearize_threshold
+        (ISAM2's own test, with the scalar threshold).  Counted on the whole delta vector, less
+        the held variables' components: the same answer as zeroing the held ones in a copy of the
+        delta and taking the maximum (what this did), without copying a VectorValues of every
+        variable of the run (0.3-0.4 ms a step, growing with the run)."""
+        delta = self.isam.getDelta()
+        threshold = self.config.relinearize_threshold
+        over = int(np.count_nonzero(np.abs(delta.vector()) >= threshold))
+        if over == 0:
+            return False
+        held_over = sum(int(np.count_nonzero(np.abs(delta.at(key)) >= threshold))
+                        for key in set(held) if delta.exists(key))
+        return over > held_over
 
     def _isam_step(self) -> None:
         self._initialise_pending()
