@@ -137,17 +137,34 @@ class RigGeometry:
         tilt = self.config.lift_axis_sigma_rad
         return Pose3(), np.diag([tilt, tilt, GAUGE_SIGMA, GAUGE_SIGMA, GAUGE_SIGMA, GAUGE_SIGMA]) ** 2
 
+    def _stewart_term(self, platform_T_camera: Pose3) -> np.ndarray:
+        """The Stewart platform's repeatability carried to the camera's tangent."""
+        c = self.config
+        platform_to_camera = platform_T_camera.inverse().AdjointMap()     # a platform twist, in the camera's tangent
+        stewart_cov = np.diag([c.stewart_repeatability_rad] * 3 + [c.stewart_repeatability_m] * 3) ** 2
+        return platform_to_camera @ stewart_cov @ platform_to_camera.T
+
+    @functools.cached_property
+    def _nominal_stewart_term(self) -> np.ndarray:
+        """`_stewart_term` at the nominal mount: the same for every view of a run, so computed once
+        (a run builds a chain factor per view; the same numbers bit for bit)."""
+        term = self._stewart_term(self.nominal_platform_T_camera)
+        term.flags.writeable = False
+        return term
+
     def chain_noise(self, motion: ViewMotion, platform_T_camera: Pose3 | None = None) -> gtsam.noiseModel.Base:
         """The devices' repeatability, propagated to the camera pose (its tangent).  A lifted view
         adds the lift carriage's: a translation of the base, isotropic, so the same in the camera's
         axes."""
         c = self.config
-        platform_T_camera = platform_T_camera or self.nominal_platform_T_camera
-        platform_to_camera = platform_T_camera.inverse().AdjointMap()     # a platform twist, in the camera's tangent
-        stewart_cov = np.diag([c.stewart_repeatability_rad] * 3 + [c.stewart_repeatability_m] * 3) ** 2
+        if platform_T_camera is None:
+            platform_T_camera = self.nominal_platform_T_camera
+            stewart_term = self._nominal_stewart_term
+        else:
+            stewart_term = self._stewart_term(platform_T_camera)
         axis_T_camera = self.nominal_world_T_base.compose(self.base_T_platform(motion)).compose(platform_T_camera)
         per_turn = -axis_T_camera.inverse().AdjointMap() @ _ABOUT_Z    # the camera's motion per rad of turntable error
-        cov = (platform_to_camera @ stewart_cov @ platform_to_camera.T
+        cov = (stewart_term
                + c.turntable_repeatability_rad ** 2 * np.outer(per_turn, per_turn) + np.eye(6) * 1e-12)
         if motion.lift_m:
             cov[3:, 3:] += np.eye(3) * c.lift_repeatability_m ** 2

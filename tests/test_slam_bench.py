@@ -211,3 +211,19 @@ def test_the_scaling_study_sees_a_structure_as_the_rendered_camera_does():
     g = res["growth"]["corner-info"]
     assert g["batch_ms"] is not None and g["batch_vs_factors"] is not None
     assert any("batch ∝ factors^" in line for line in bench_scaling.markdown(res))
+
+
+def test_the_speed_section_reports_each_figure_with_its_target_and_floors():
+    from lab.studies import bench_scaling
+
+    rows = [bench_scaling.measure(3, obs, 0) for obs in ("corners", "corner-info")]
+    for r in rows:
+        # the iSAM2 update alone is part of the step, never more than it
+        assert 0 < r["solver_median_ms"] <= r["step_median_ms"] and r["solver_max_ms"] <= r["step_max_ms"]
+    lin = bench_scaling.linearisation_costs(repeats=40)
+    assert lin["BetweenFactorPose3 (C++)"] < lin["corner factor (Python)"]
+    res = {"rows": rows + [dict(rows[1], n=5)], "large_n": 5, "linearisation_us": lin}
+    md = "\n".join(bench_scaling.speed_markdown(res))
+    assert "| step, 3×3×3, median / max (ms) | ≤ 2 / ≤ 10 |" in md
+    assert "| full batch LM, 3×3×3 (ms) | ≤ 20 |" in md
+    assert "step, 5×5×5" in md and "corner factor (Python)" in md

@@ -218,3 +218,42 @@ def test_the_residuals_in_one_pass_are_the_corner_factors_own():
     own = np.concatenate([np.asarray(slam.graph.at(f[0]).unwhitenedError(slam.estimate)) / f[1]
                           for f in slam._corner_factors])
     assert len(own) > 40 and slam._face_on_residuals == pytest.approx(own, abs=1e-9)
+
+
+def test_the_relinearisation_check_without_a_copy_is_the_copied_deltas():
+    """`_moved_past_threshold` counts over the whole delta less the held variables' components; it
+    answers as zeroing the held variables in a copy of the delta and taking the maximum did."""
+    slam = _run()
+
+    def copied(held) -> bool:
+        delta = gtsam.VectorValues(slam.isam.getDelta())
+        zero = gtsam.VectorValues()
+        for key in set(held):
+            if delta.exists(key):
+                zero.insert(key, np.zeros(delta.at(key).size))
+        if zero.size():
+            delta.update(zero)
+        v = delta.vector()
+        return v.size > 0 and float(np.abs(v).max()) >= slam.config.relinearize_threshold
+
+    held = slam._linear_keys()
+    assert list(held)
+    for threshold in (1e-12, 1e-6, 1e-3, 1.0):
+        slam.config = SlamConfig(**{**slam.config.__dict__, "relinearize_threshold": threshold})
+        for keys in (held, gtsam.KeyList()):
+            assert slam._moved_past_threshold(keys) == copied(keys)
+    # both answers occur (the check is not vacuous)
+    slam.config = SlamConfig(**{**slam.config.__dict__, "relinearize_threshold": 1e-12})
+    assert slam._moved_past_threshold(held)
+    slam.config = SlamConfig(**{**slam.config.__dict__, "relinearize_threshold": 1.0})
+    assert not slam._moved_past_threshold(held)
+
+
+def test_the_chain_noise_at_the_nominal_mount_is_computed_once_to_the_same_bits():
+    motion = ViewMotion(0.4, (0.01, -0.02, 0.005, 0.02, 0.1, -0.03))
+    cached = GEOM.chain_noise(motion).covariance()
+    again = GEOM.chain_noise(motion).covariance()
+    explicit = GEOM.chain_noise(motion, GEOM.nominal_platform_T_camera).covariance()
+    assert np.array_equal(cached, explicit) and np.array_equal(cached, again)
+    moved = GEOM.nominal_platform_T_camera.compose(Pose3(Rot3.Rz(0.2), np.array([0.01, 0.0, 0.0])))
+    assert not np.array_equal(GEOM.chain_noise(motion, moved).covariance(), cached)

@@ -36,6 +36,25 @@ def _cameras(model, module) -> list:
     return ss.cameras_around(tag.translation(), R[:, 2], 2.2, [(0, 0, 0), tuple(0.8 * R[:, 0]), tuple(-0.8 * R[:, 0])])
 
 
+class _TimedISAM2:
+    """iSAM2 with its `update` calls timed: how much of a step is the solver itself (elimination,
+    and linearising the factors it touches), and how much is the estimator's bookkeeping around it."""
+
+    def __init__(self, isam) -> None:
+        self._isam = isam
+        self.seconds = 0.0
+
+    def update(self, *args, **kwargs):
+        t0 = time.perf_counter()
+        try:
+            return self._isam.update(*args, **kwargs)
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+    def __getattr__(self, name: str):
+        return getattr(self._isam, name)
+
+
 def measure(n: int, observation: str, seed: int) -> dict:
     import gtsam
 
@@ -52,22 +71,25 @@ def measure(n: int, observation: str, seed: int) -> dict:
     cfg = SlamConfig(observation=observation, corner_sigma_px=setup.graph_sigma_px,
                      camera_sigma_m=setup.camera_sigma_m, camera_sigma_rad=setup.camera_sigma_rad)
     slam = SfGraphSlam(model, cfg, camera=(ss.SIM_K, np.zeros(5)))
+    timed = slam.isam = _TimedISAM2(slam.isam)
     present = list(model.turntable.tag_ids)
     # the turntable tags first, from the four sides: they anchor the structure frame
     for face in range(4):
         cam = ss.rig_camera(model, math.radians(90.0 * face), math.radians(-8.0))
         slam.add_view(cam, _sight(rng, ss.SIM_K, cam, cam, truth, present, model, setup, OCCLUSION))
     slam.update()
-    steps, marginals = [], []
+    steps, solver, marginals = [], [], []
     for m in model.modules:
         present += list(m.tags)
         for cam in _cameras(model, m):
             reported = cam.compose(Pose3(Rot3.Expmap(rng.normal(0, setup.camera_sigma_rad, 3)),
                                          rng.normal(0, setup.camera_sigma_m, 3)))
             slam.add_view(reported, _sight(rng, ss.SIM_K, cam, reported, truth, present, model, setup, OCCLUSION))
+        timed.seconds = 0.0
         t0 = time.perf_counter()
         slam.update()
         steps.append(time.perf_counter() - t0)
+        solver.append(timed.seconds)
         if slam.has_tag(m.tags[0]):
             t0 = time.perf_counter()
             slam.isam.marginalCovariance(slam.key(m.tags[0]))
@@ -87,6 +109,8 @@ def measure(n: int, observation: str, seed: int) -> dict:
             "factors": int(slam.graph.size()), "views": slam.n_views,
             "sightings_per_view": sum(slam.observations.values()) / max(slam.n_views, 1),
             "step_median_ms": float(np.median(steps) * 1000), "step_max_ms": float(np.max(steps) * 1000),
+            # the iSAM2 update calls alone within each step (with a Python factor, its callbacks too)
+            "solver_median_ms": float(np.median(solver) * 1000), "solver_max_ms": float(np.max(solver) * 1000),
             "marginal_median_ms": float(np.median(marginals) * 1000) if marginals else None,
             "batch_ms": batch * 1000, "marginals_factorisation_ms": all_marginals * 1000}
 
@@ -155,3 +179,113 @@ def plot(res: dict, out_dir: str) -> str | None:
     ax.set_title("SF-GraphSLAM cost against structure size (N = 3..8)")
     ax.legend(fontsize=7)
     return save_figure(fig, out_dir, "slam_scaling.png")
+
+
+# ---- `lab bench slam --only speed`: the issue's speed figures beside their targets and floors ----
+# (median ms, max ms) of a step; ms of a batch solve (issue 21's targets)
+SPEED_TARGETS = {"step": {3: (2.0, 10.0), 8: (10.0, 100.0)}, "batch": {3: 20.0, 8: 200.0}}
+
+
+def linearisation_costs(repeats: int = 300) -> dict[str, float]:
+    """Microseconds per linearisation of one factor, median of `repeats` linearisations of a graph
+    of 20 copies: the run's two Python factors (the corner factor with fixed intrinsics, print
+    scale and lens term; the kinematic chain) against the C++ factors a compiled model would use
+    (a BetweenFactorPose3, the corner-info factor's type; four GenericProjectionFactorCal3_S2, one
+    tag's corners)."""
+    import gtsam
+
+    from estimation.fiducials import tag_object_points
+    from estimation.rig_model import (AXIS, BASE, DISTORTION, MOUNT, RigGeometry, ViewMotion, cal3_s2, chain_factor,
+                                      corner_factor, radial_basis)
+    from lab.core.config import load_rig
+    from lab.core.geometry import Pose3, Rot3
+    from lab.core.structures.borg import build_borg
+    from lab.studies import slam_sim as ss
+
+    C, T, S, P = (gtsam.symbol_shorthand.C, gtsam.symbol_shorthand.T, gtsam.symbol_shorthand.S,
+                  gtsam.symbol_shorthand.P)
+    cal = cal3_s2(ss.SIM_K)
+    tag = Pose3(Rot3.RzRyRx(math.pi / 2, 0.0, -math.pi / 2), np.array([0.0, 0.2, 0.6]))
+    cam = tag.compose(Pose3(Rot3.RzRyRx(math.pi, 0.2, 0.0), np.zeros(3))).compose(Pose3(Rot3(), np.array([0.0, 0.0, -2.0])))
+    local = tag_object_points(0.1)
+    pinhole = gtsam.PinholeCameraCal3_S2(cam, cal)
+    uv = np.array([pinhole.project(tag.transformFrom(p)) for p in local])
+    model = build_borg(3)
+    geometry = RigGeometry.from_rig(load_rig(), model.world_T_structure(0.0), ss.SIM_K)
+    motion = ViewMotion(0.3, (0.0, 0.0, 0.0, 0.0, 0.1, 0.0))
+    values = gtsam.Values()
+    for key, value in ((C(0), cam), (T(0), tag), (AXIS, Pose3()), (BASE, geometry.nominal_world_T_base),
+                       (MOUNT, geometry.nominal_platform_T_camera)):
+        values.insert(key, value)
+    values.insert(S(0), np.zeros(1))
+    values.insert(DISTORTION, np.zeros(2))
+    for i, p in enumerate(local):
+        values.insert(P(i), tag.transformFrom(p))
+    noise6 = gtsam.noiseModel.Isotropic.Sigma(6, 0.01)
+    noise2 = gtsam.noiseModel.Isotropic.Sigma(2, 0.02)
+    makers = {
+        "corner factor (Python)": lambda: [corner_factor(C(0), T(0), uv, local, 0.02, robust_k=3.0, fixed=cal,
+                                                         scale_key=S(0), distortion=(DISTORTION, radial_basis(uv, ss.SIM_K)))],
+        "chain factor (Python)": lambda: [chain_factor(geometry, motion, C(0))],
+        "BetweenFactorPose3 (C++)": lambda: [gtsam.BetweenFactorPose3(C(0), T(0), cam.between(tag), noise6)],
+        "4 x GenericProjectionFactorCal3_S2 (C++)": lambda: [gtsam.GenericProjectionFactorCal3_S2(
+            gtsam.Point2(*uv[i]), noise2, C(0), P(i), cal) for i in range(4)],
+    }
+    out = {}
+    for name, make in makers.items():
+        graph = gtsam.NonlinearFactorGraph()
+        for _ in range(20):
+            for f in make():
+                graph.add(f)
+        runs = []
+        for _ in range(max(repeats // 20, 5)):
+            t0 = time.perf_counter()
+            graph.linearize(values)
+            runs.append((time.perf_counter() - t0) / 20)
+        out[name] = float(np.median(runs) * 1e6)
+    return out
+
+
+def speed(quick: bool = False, seed: int = 0) -> dict:
+    """The speed figures of issue 21 on the scaling study's surveys (`measure`): a 3x3x3 run and
+    an 8x8x8 study (N = 5 with `quick`), each step and the full batch solve in the run's own
+    observation model (`corners`: the Python corner factor; at N = 8 its batch takes minutes and
+    is not run) and in `corner-info` (every factor in C++: the floor compiled factors would reach,
+    bookkeeping included); the iSAM2 update alone (`solver_*`) is the floor without the
+    estimator's Python bookkeeping around it."""
+    large = 5 if quick else 8
+    rows = [measure(3, "corners", seed), measure(3, "corner-info", seed), measure(large, "corner-info", seed)]
+    return {"rows": rows, "large_n": large, "linearisation_us": linearisation_costs()}
+
+
+def speed_markdown(res: dict) -> list[str]:
+    by = {(r["n"], r["observation"]): r for r in res["rows"]}
+    large = res["large_n"]
+    lines = ["| figure | target | run's model (`corners`) | all factors in C++ (`corner-info`) | iSAM2 update alone (`corner-info`) | met |",
+             "|---|---|---|---|---|---|"]
+    for n in (3, large):
+        target = SPEED_TARGETS["step"].get(n)
+        run, cpp = by.get((n, "corners")), by[(n, "corner-info")]
+        tgt = f"≤ {target[0]:g} / ≤ {target[1]:g}" if target else "(targets at N = 3 and 8)"
+        run_s = f"{run['step_median_ms']:.1f} / {run['step_max_ms']:.0f}" if run else "not run"
+        met = "–"
+        if target and run:
+            met = "yes" if run["step_median_ms"] <= target[0] and run["step_max_ms"] <= target[1] else "**no**"
+        elif target:
+            met = ("C++ model only" if cpp["step_median_ms"] <= target[0] and cpp["step_max_ms"] <= target[1] else "**no**")
+        lines.append(f"| step, {n}×{n}×{n}, median / max (ms) | {tgt} | {run_s} | {cpp['step_median_ms']:.1f} / "
+                     f"{cpp['step_max_ms']:.0f} | {cpp['solver_median_ms']:.1f} / {cpp['solver_max_ms']:.0f} | {met} |")
+    for n in (3, large):
+        target = SPEED_TARGETS["batch"].get(n)
+        run, cpp = by.get((n, "corners")), by[(n, "corner-info")]
+        met = "–"
+        if target:
+            met = ("yes" if run and run["batch_ms"] <= target else
+                   ("C++ model only" if cpp["batch_ms"] <= target else "**no**"))
+        lines.append(f"| full batch LM, {n}×{n}×{n} (ms) | {'≤ %g' % target if target else '–'} | "
+                     f"{'%.0f' % run['batch_ms'] if run else 'not run (minutes)'} | {cpp['batch_ms']:.0f} | – | {met} |")
+    lines.append("")
+    lines.append("One factor's linearisation (µs, median): " + ", ".join(
+        f"{k} {v:.1f}" for k, v in res["linearisation_us"].items()) + ".")
+    lines.append("")
+    return lines

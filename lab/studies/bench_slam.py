@@ -40,12 +40,13 @@ from lab.core.verdicts import FLAGGED
 from lab.studies.bench_common import save_figure
 
 STUDIES = ("deployable", "closeout_strut", "closeout_square", "partial_deploy", "borg_face1", "tag_elimination",
-           "borg_full", "borg_full_rendered", "verification", "precision", "scaling")
-DEFAULT_STUDIES = STUDIES[:-1]   # scaling only when asked for: it is a machine's capacity, not the method's
+           "borg_full", "borg_full_rendered", "verification", "precision", "scaling", "speed")
+# scaling and speed only when asked for: they are a machine's capacity, not the method's
+DEFAULT_STUDIES = STUDIES[:-2]
 # (full, --quick) trial counts; the paper ran 50 (deployable) and 10 (close-outs)
 TRIALS = {"deployable": (50, 20), "closeout_strut": (20, 10), "closeout_square": (20, 10), "partial_deploy": (50, 20),
           "borg_face1": (20, 3), "tag_elimination": (50, 20), "borg_full": (20, 5), "borg_full_rendered": (5, 1),
-          "verification": (20, 4), "precision": (60, 12), "scaling": (1, 1)}
+          "verification": (20, 4), "precision": (60, 12), "scaling": (1, 1), "speed": (1, 1)}
 PARTIAL_HEIGHT_M = 0.40
 DISPLACED_TAG, DISPLACEMENT_M = 17, (0.0, 0.3, 0.0)
 
@@ -599,7 +600,7 @@ def to_markdown(res: dict) -> str:
     lines.append("")
     studies = res["studies"]
     for study, methods in studies.items():
-        if study in ("verification", "precision", "scaling"):
+        if study in ("verification", "precision", "scaling", "speed"):
             continue
         lines.append(f"#### {study}")
         lines.append("")
@@ -645,6 +646,12 @@ def to_markdown(res: dict) -> str:
         lines.append("#### scaling: SF-GraphSLAM cost against structure size")
         lines.append("")
         lines.extend(scaling_md(studies["scaling"]))
+    if "speed" in studies:
+        from lab.studies.bench_scaling import speed_markdown
+
+        lines.append("#### speed: the SLAM step and batch solve against issue 21's targets, with their floors")
+        lines.append("")
+        lines.extend(speed_markdown(studies["speed"]))
     if "precision" in studies:
         from lab.studies.bench_precision import markdown as precision_md
 
@@ -766,7 +773,7 @@ def _plots(res: dict, out_dir: str) -> list[str]:
         f = scaling_plot(st["scaling"], out_dir)
         if f:
             files.append(f)
-    names = [s for s in st if s not in ("verification", "precision", "scaling")]
+    names = [s for s in st if s not in ("verification", "precision", "scaling", "speed")]
     if names:
         methods = ["graphslam", "sf_graphslam", "paper_powell"]
         fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
@@ -871,6 +878,10 @@ def run(args: argparse.Namespace) -> int:
 
             sizes = (3, 4, 5) if args.quick else bench_scaling.SIZES
             res["studies"][study] = bench_scaling.study(sizes, seed=args.seed, max_corner_n=4 if args.quick else 5)
+        elif study == "speed":
+            from lab.studies import bench_scaling
+
+            res["studies"][study] = bench_scaling.speed(quick=bool(args.quick), seed=args.seed)
         res.setdefault("study_wall_s", {})[study] = time.perf_counter() - t0
     res["wall_s"] = time.perf_counter() - t_all
     md = to_markdown(res)
