@@ -628,7 +628,9 @@ class BorgProcedure:
         if self.bench.simulated:
             # the simulated camera's noise for this view depends only on (seed, step, attempt, view)
             self.bench.sim.world.reseed_camera([self.bench.scenario.seed, _STREAM_CAMERA, step, attempt, k])
+        t0 = time.monotonic()
         frame = cam.grab()
+        run.recorder.log_metric("camera/grab_s", time.monotonic() - t0, "s")
         world_T_camera = self.camera_model.world_T_camera(view)
         return frame, world_T_camera
 

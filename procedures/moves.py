@@ -20,6 +20,7 @@ the consequence, not the cause, and is not reported.
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -45,12 +46,17 @@ def move_together(run: Any, moves: Sequence[Move]) -> None:
     failure after stopping the others.  `run`: the step's RunContext (its `move` progress bar)."""
     if not moves:
         return
+    t0 = time.monotonic()
     if len(moves) == 1:
         with run.move(moves[0].description) as progress:
             moves[0].go(progress)
-        return
-    with run.move(" + ".join(m.description for m in moves)) as progress:
-        _together(moves, progress)
+    else:
+        with run.move(" + ".join(m.description for m in moves)) as progress:
+            _together(moves, progress)
+    recorder = getattr(run, "recorder", None)
+    if recorder is not None:
+        # the time the devices took (the hardware's share of a run; `lab runs show --timings`)
+        recorder.log_metric("motion/move_s", time.monotonic() - t0, "s")
 
 
 def _together(moves: Sequence[Move], progress: Progress) -> None:

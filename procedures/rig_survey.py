@@ -15,6 +15,7 @@ and +-30 deg, all within 50 deg of incidence (an oblique tag's corners are biase
 from __future__ import annotations
 
 import math
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -176,7 +177,11 @@ def capture(bench: Any, run: Any, plan: RigSurveyPlan, detector: Any, *, seed: S
             last = view
             if bench.simulated:
                 bench.sim.world.reseed_camera([*seed, k])
+            t0 = time.monotonic()
             frame = cam.grab()
+            recorder = getattr(run, "recorder", None)
+            if recorder is not None:
+                recorder.log_metric("camera/grab_s", time.monotonic() - t0, "s")
             if pool is not None:
                 pending.append(pool.submit(process, k, view, frame))
             else:

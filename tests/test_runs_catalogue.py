@@ -112,6 +112,12 @@ def test_show_timings_reads_the_runs_metrics(lab, root: Path) -> None:
     step = t["slam/update_s"]
     assert step["unit"] == "s" and step["count"] == 2 and 0 < step["median"] <= step["p90"] <= step["max"]
     assert abs(float(rows["slam/update_s"][2]) - step["median"] * 1000) <= 0.05
+    # where the run's time went: the devices' moves and the camera's grabs, each with its total
+    for name in ("motion/move_s", "camera/grab_s"):
+        m = t[name]
+        assert m["count"] >= 2 and m["unit"] == "s"
+        assert m["max"] <= m["total"] <= m["count"] * m["max"] + 1e-12
+        assert rows[name][-1] == "s" and abs(float(rows[name][-2]) - m["total"]) <= 0.05
 
 
 def test_the_default_root_comes_from_the_environment_or_the_user_config(tmp_path: Path) -> None:

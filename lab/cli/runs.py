@@ -18,8 +18,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s = rsub.add_parser("show", help="a run's summary and its verdict (or node) table")
     s.add_argument("run", metavar="RUN", help="a run id from `lab runs`, a run directory or its run.mcap")
     s.add_argument("--timings", action="store_true",
-                   help="also the run's metrics from run.mcap: count, median, 90th percentile, max of each "
-                        "(slam/update_s: the estimator's time per BORG step)")
+                   help="also the run's metrics from run.mcap: count, median, 90th percentile, max of each and "
+                        "the total of times (slam/update_s: the estimator's time per BORG step; motion/move_s: "
+                        "the devices' moves; camera/grab_s: the camera's frames)")
     _common(s)
     s.set_defaults(func=_show)
 

@@ -367,6 +367,7 @@ class MetricStats:
     median: float
     p90: float
     max: float
+    total: float = 0.0
 
 
 def run_metrics(path: Path) -> dict[str, tuple[str, list[float]]]:
@@ -384,17 +385,22 @@ def run_metrics(path: Path) -> dict[str, tuple[str, list[float]]]:
 def metric_stats(metrics: dict[str, tuple[str, list[float]]]) -> list[MetricStats]:
     import numpy as np
 
-    return [MetricStats(name, unit, len(v), float(np.median(v)), float(np.percentile(v, 90)), float(max(v)))
+    return [MetricStats(name, unit, len(v), float(np.median(v)), float(np.percentile(v, 90)), float(max(v)),
+                        float(np.sum(v)))
             for name, (unit, v) in sorted(metrics.items()) if v]
 
 
 def format_metrics(stats: list[MetricStats]) -> str:
-    """A line per metric; seconds shown in ms."""
+    """A line per metric; seconds shown in ms, their total in s (where a run's time went)."""
     def show(x: float, unit: str) -> str:
         return f"{x * 1000:.1f} ms" if unit == "s" else f"{x:.4g} {unit}".rstrip()
 
-    rows = [("metric", "count", "median", "90th pct", "max")]
-    rows += [(m.name, str(m.count), show(m.median, m.unit), show(m.p90, m.unit), show(m.max, m.unit)) for m in stats]
+    def total(m: MetricStats) -> str:
+        return f"{m.total:.1f} s" if m.unit == "s" else ""
+
+    rows = [("metric", "count", "median", "90th pct", "max", "total")]
+    rows += [(m.name, str(m.count), show(m.median, m.unit), show(m.p90, m.unit), show(m.max, m.unit), total(m))
+             for m in stats]
     widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
     return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
 
