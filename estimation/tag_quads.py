@@ -332,8 +332,18 @@ def _odd_rows(edge_of: np.ndarray, v_dark: np.ndarray, v_bright: np.ndarray, ok:
     start = np.cumsum(rows) - rows
 
     def median(v: np.ndarray) -> np.ndarray:
-        order = np.lexsort((v, ~ok, edge_of))          # per edge: its usable rows first, by value
-        m = v[order[np.clip(start + np.maximum(cnt - 1, 0) // 2, 0, max(R - 1, 0))]] if R else np.zeros(n_edges)
+        if R == 0:
+            return np.full(n_edges, np.nan)
+        # per edge (edge_of is sorted): its usable rows first, by value.  One argsort of a single
+        # key, each edge's values shifted into a band of its own and the unusable rows past them,
+        # is ~20x faster than a three-key lexsort; the values are grey levels, so the shift costs
+        # at most ~1e-10 of a grey level of resolution (ties that close may swap)
+        use = ok & np.isfinite(v)      # NaN only on edges without a median (fewer than MIN_ROWS rows)
+        k = np.where(use, v, 0.0)
+        lo = float(k.min())
+        span = float(k.max()) - lo + 1.0
+        order = np.argsort(np.where(use, k - lo, span) + edge_of * (2.0 * span), kind="stable")
+        m = v[order[np.clip(start + np.maximum(cnt - 1, 0) // 2, 0, R - 1)]]
         return np.where(cnt >= MIN_ROWS, m, np.nan)
 
     dark_m, bright_m = median(v_dark), median(v_bright)
