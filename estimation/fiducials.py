@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 from estimation.quad_bias import blur_bias
-from estimation.tag_quads import code_bits, fit_quads, identify, read_bits, ring_deviation
+from estimation.tag_quads import code_bits, edge_blur_px, fit_quads, identify, read_bits, ring_deviation
 from lab.core.geometry import Pose3, Rot3
 
 __all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges",
@@ -236,12 +236,14 @@ class TagDetector:
         corners = np.concatenate(found).reshape(-1, 4, 2)
         initial = np.concatenate(started).reshape(-1, 4, 2)
         if cfg.quiet_zone and len(corners):
-            clear = ring_deviation(grey, corners) <= cfg.max_ring_deviation
+            blur = edge_blur_px(grey, corners)              # read once: the ring's scale and the bias model's
+            clear = ring_deviation(grey, corners, blur) <= cfg.max_ring_deviation
             found_ids = [t for t, c in zip(found_ids, clear) if c]
-            corners, initial = corners[clear], initial[clear]
-        if cfg.correct_blur_bias and cfg.quiet_zone and len(corners):     # the model draws the quiet zone
-            bias, _ = blur_bias(grey, corners, initial, self._codes[np.asarray(found_ids)], cfg.quiet_zone)
-            corners = corners - bias
+            corners, initial, blur = corners[clear], initial[clear], blur[clear]
+            if cfg.correct_blur_bias and len(corners):      # the model draws the quiet zone
+                bias, _ = blur_bias(grey, corners, initial, self._codes[np.asarray(found_ids)], cfg.quiet_zone,
+                                    blur_px=blur)
+                corners = corners - bias
         return found_ids, corners
 
     def refine(self, grey: np.ndarray, ids: Sequence[int], quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

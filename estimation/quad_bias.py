@@ -153,14 +153,16 @@ def _fit_levels(y: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def blur_bias(grey: np.ndarray, corners: np.ndarray, initial: np.ndarray, patterns: np.ndarray,
-              quiet_zone: bool = True, rounds: int = 2) -> tuple[np.ndarray, np.ndarray]:
+              quiet_zone: bool = True, rounds: int = 2, blur_px: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
     """The edge fit's bias (see `_bias_at`), the model drawn first at the fitted corners, then at
     the corners less the bias found (the model's blur and levels are fitted to the photograph at
-    its corners, and fit better where the corners are right)."""
+    its corners, and fit better where the corners are right).  `blur_px`: the photograph's
+    `edge_blur_px` at `corners`, if the caller has it already."""
     q = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
     g = np.ascontiguousarray(grey, dtype=np.float32)
     # the photograph's edge blur, read once at the fitted corners (every round's model matches it)
-    seen = edge_blur_px(g, q) if len(q) else np.zeros(0)
+    seen = np.asarray(blur_px, dtype=np.float64) if blur_px is not None else edge_blur_px(g, q) if len(q) else np.zeros(0)
     bias, sigma = _bias_at(g, seen, q, initial, patterns, quiet_zone, np.full(len(q), np.nan))
     for _ in range(rounds - 1):
         bias, sigma = _bias_at(g, seen, q - bias, initial, patterns, quiet_zone, sigma)

@@ -731,7 +731,7 @@ def edge_blur_px(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     return np.exp(0.5 * (lo + hi))
 
 
-def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
+def ring_deviation(grey: np.ndarray, quads: np.ndarray, blur_px: np.ndarray | None = None) -> np.ndarray:
     """How far each tag's black border and white quiet zone stray from its own black and white,
     along the whole perimeter (N,): the largest shortfall of a sample, as a fraction of the
     tag's contrast (the two clusters of its 64 cells' centres).  A clean tag reads ~0; something
@@ -741,7 +741,8 @@ def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     run off the frame) and at least RING_MIN_EDGE_PX, or RING_MIN_EDGE_SIGMAS of the tag's edge
     blur (`edge_blur_px`) if that is more, from every edge of their ring cell (on a small tag, one
     seen very obliquely or through a blurred lens, the blur of a cell's edges meets in its middle);
-    quads (N, 4, 2), corner 0 the marker's top-left."""
+    quads (N, 4, 2), corner 0 the marker's top-left; `blur_px`: their `edge_blur_px` if the caller
+    has it already."""
     q = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 2)
     if len(q) == 0:
         return np.zeros(0)
@@ -756,7 +757,8 @@ def ring_deviation(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
     n_out = np.stack([u[..., 1], -u[..., 0]], axis=2)
     across = np.minimum(np.abs(np.sum(np.roll(seg, 1, axis=1) * n_out, axis=2)),
                         np.abs(np.sum(np.roll(seg, -1, axis=1) * n_out, axis=2))) / CELLS     # (N, 4)
-    clear = np.maximum(RING_MIN_EDGE_PX, RING_MIN_EDGE_SIGMAS * edge_blur_px(grey, q))[:, None]   # (N, 1)
+    blur = edge_blur_px(grey, q) if blur_px is None else np.asarray(blur_px, dtype=np.float64)
+    clear = np.maximum(RING_MIN_EDGE_PX, RING_MIN_EDGE_SIGMAS * blur)[:, None]   # (N, 1)
     inside &= (across[:, side] * margin[None, :] >= clear) & (across[:, adj] * along[None, :] >= clear)
     dark, bright = _tag_levels(grey, q)
     contrast = np.maximum(bright - dark, 1e-6)[:, None]
