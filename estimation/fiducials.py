@@ -196,13 +196,7 @@ class TagDetector:
         any pose: aruco's decoded quads, and the quads it found but could not decode that our own
         read of the refined quad identifies."""
         cfg = self.config
-        search = grey
-        smooth = cfg.candidate_filter_grey
-        if smooth is None:
-            smooth = CANDIDATE_FILTER_GREY if cfg.quiet_zone else 0.0
-        if smooth > 0 and grey.dtype == np.uint8:
-            search = cv2.bilateralFilter(grey, CANDIDATE_FILTER_PX, smooth, CANDIDATE_FILTER_PX / 2)
-        corners, ids, rejected = self._detector.detectMarkers(search)
+        corners, ids, rejected = self.candidates(grey)
         ids = [] if ids is None else [int(t) for t in ids.reshape(-1)]
         mine = [i for i, t in enumerate(ids) if t in self.sizes]
         quads = np.array([corners[i].reshape(4, 2) for i in mine], dtype=np.float64).reshape(-1, 4, 2)
@@ -245,6 +239,17 @@ class TagDetector:
                                     blur_px=blur)
                 corners = corners - bias
         return found_ids, corners
+
+    def candidates(self, grey: np.ndarray) -> tuple:
+        """aruco's decoded quads, their ids and its rejected quads (`detectMarkers`' three outputs),
+        searched for on the frame smoothed as `DetectorConfig.candidate_filter_grey` says."""
+        search = grey
+        smooth = self.config.candidate_filter_grey
+        if smooth is None:
+            smooth = CANDIDATE_FILTER_GREY if self.config.quiet_zone else 0.0
+        if smooth > 0 and grey.dtype == np.uint8:
+            search = cv2.bilateralFilter(grey, CANDIDATE_FILTER_PX, smooth, CANDIDATE_FILTER_PX / 2)
+        return self._detector.detectMarkers(search)
 
     def refine(self, grey: np.ndarray, ids: Sequence[int], quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Edge-fitted corners of quads of known ids and whether each passed every check."""

@@ -365,7 +365,7 @@ def timing_study(frames: int, seed: int) -> dict:
     grey = [img[:, :, 0].copy() for img, _ in twenty_tag_frames(frames, seed)]
     det = TagDetector(K, dist, {i: 0.10 for i in range(64)})
     runs: dict[str, Callable] = {"ours: detect (corners + poses)": det.detect, "ours: corners only": det.find,
-                                 "  of which aruco's detectMarkers": lambda g: det._detector.detectMarkers(g)[1]}
+                                 "  of which aruco's candidate search": lambda g: det.candidates(g)[1]}
     if apriltag3.available():
         runs["AprilTag 3, quad_decimate 1"] = lambda g: apriltag3.detect(g, 1.0)
         runs["AprilTag 3, quad_decimate 2 (its default)"] = lambda g: apriltag3.detect(g, 2.0)
@@ -404,7 +404,7 @@ def photo_timing_study(repeats: int = 5, photo_dir: str = PHOTO_DIR) -> dict:
         return {"skipped": f"no reference.json in {photo_dir}"}
     det = TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)}, DetectorConfig(quiet_zone=False))
     runs: dict[str, Callable] = {"ours (corners, every check)": det.find,
-                                 "  of which aruco's detectMarkers": lambda g: det._detector.detectMarkers(g)[1]}
+                                 "  of which aruco's candidate search": lambda g: det.candidates(g)[1]}
     if apriltag3.available():
         runs["AprilTag 3, its defaults (quad_decimate 2, 1 thread)"] = lambda g: apriltag3.detect(g, 2.0)
         runs["AprilTag 3, quad_decimate 1"] = lambda g: apriltag3.detect(g, 1.0)
