@@ -98,8 +98,9 @@ class DetectorConfig:
     # contours, and tracing them is most of aruco's time (40 ms of a 1280x720 frame here).  A
     # bilateral filter at ~3 sigma of that noise removes the speckle and keeps the tags' edges (150+
     # grey levels of contrast) and their thinnest foreshortened cells, where a Gaussian of 0.6 px lost
-    # 6 of 386 tags of the README's main job.  Measured (docs/fiducials.md, "Time"): main job frames,
-    # aruco 40 -> 15 ms, none of the 386 tags lost, 6 more found.  Off for other people's tags
+    # 6 of 386 tags of the README's main job.  Measured (docs/fiducials.md, "Time"): the main job's
+    # 206 frames, aruco 40 -> 12-15 ms; of their 1158 tags 5 lost and 12 more found, all of them
+    # turned ~80 deg (short sides 10-16 px), at the detector's limit either way.  Off for other people's tags
     # (photographs, `quiet_zone=False` studies): on JPEG-q35 copies of the photographs it loses 5
     # of 54 tags (the filter keeps the compression's block edges and smooths the small tags' cells).
     # None: 20 for the lab's tags (`quiet_zone`), 0 for others.

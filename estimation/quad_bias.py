@@ -126,10 +126,7 @@ def _bases(shape: tuple[int, int], q: np.ndarray, pattern: np.ndarray, pad: int
     src = ((np.float32([[0, 0], [CELLS, 0], [CELLS, CELLS], [0, CELLS]]) + m + 1) * T - 0.5).astype(np.float32)
     # ... and on the sub-pixel grid of the patch (pixel x0's left edge at sub-pixel -0.5)
     Ht = cv2.getPerspectiveTransform(src, ((q - [x0 - 0.5, y0 - 0.5]) * s - 0.5).astype(np.float32))
-    # four channels, the last unused: OpenCV warps and resizes 4-channel float images on a faster
-    # (vectorised) path than 3-channel ones (~1.3 against ~2.2 ms on a 320 x 320 patch here)
-    tex = np.zeros(idx.shape + (3,), np.float32)
-    tex[..., 0], tex[..., 1], tex[..., 2] = idx == 2, idx == 1, near > 0
+    tex = np.stack([idx == 2, idx == 1, near > 0], axis=2).astype(np.float32)
     fine = cv2.warpPerspective(tex, Ht, (w * s, h * s), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                                borderValue=(0.0, 0.0, 0.0))
     warped = cv2.resize(fine, (w, h), interpolation=cv2.INTER_AREA)          # each pixel's area
