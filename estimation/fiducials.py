@@ -94,8 +94,8 @@ class DetectorConfig:
     # aruco's candidate search runs on a copy of the frame smoothed by a 3 x 3 bilateral filter of
     # this range sigma (grey levels; 0: off); the edge fit, the bits and every check read the frame
     # itself.  Why: on a noisy frame (the realistic default camera: read noise 7 grey levels plus shot
-    # noise) each of aruco's three adaptive thresholds breaks the flat areas into some 10^5 speckle
-    # contours, and tracing them is most of aruco's time (40 ms of a 1280x720 frame here).  A
+    # noise) aruco's three adaptive thresholds break the flat areas into some 2 x 10^5 speckle
+    # contours a frame, and tracing them is most of aruco's time (40 ms of a 1280x720 frame here).  A
     # bilateral filter at ~3 sigma of that noise removes the speckle and keeps the tags' edges (150+
     # grey levels of contrast) and their thinnest foreshortened cells, where a Gaussian of 0.6 px lost
     # 6 of 386 tags of the README's main job.  Measured (docs/fiducials.md, "Time"): the main job's
