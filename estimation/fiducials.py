@@ -100,15 +100,17 @@ class DetectorConfig:
     # grey levels of contrast) and their thinnest foreshortened cells, where a Gaussian of 0.6 px lost
     # 6 of 386 tags of the README's main job.  Measured (docs/fiducials.md, "Time"): the main job's
     # 206 frames, aruco 40 -> 12-15 ms; of their 1158 tags 5 lost and 12 more found, all of them
-    # turned ~80 deg (short sides 10-16 px), at the detector's limit either way.  Off for other people's tags
-    # (photographs, `quiet_zone=False` studies): on JPEG-q35 copies of the photographs it loses 5
-    # of 54 tags (the filter keeps the compression's block edges and smooths the small tags' cells).
+    # turned ~80 deg (short sides 10-16 px), at the detector's limit either way.  Off for other
+    # people's tags (photographs, `quiet_zone=False` studies): on JPEG-q35 copies of the photographs
+    # it loses 5 of 54 tags (the filter keeps the compression's block edges and smooths the small
+    # tags' cells).
     # None: 20 for the lab's tags (`quiet_zone`), 0 for others.
     candidate_filter_grey: float | None = None
 
 
 CANDIDATE_FILTER_PX = 3        # `DetectorConfig.candidate_filter_grey`'s neighbourhood (px; spatial sigma half of it)
-CANDIDATE_FILTER_GREY = 20.0   # ... and its range sigma for the lab's tags (grey levels: ~3 sigma of the default camera's noise)
+# ... and its range sigma for the lab's tags (grey levels: ~3 sigma of the default camera's noise)
+CANDIDATE_FILTER_GREY = 20.0
 
 
 @lru_cache(maxsize=64)

@@ -159,7 +159,10 @@ def blur_bias(grey: np.ndarray, corners: np.ndarray, initial: np.ndarray, patter
     q = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
     g = np.ascontiguousarray(grey, dtype=np.float32)
     # the photograph's edge blur, read once at the fitted corners (every round's model matches it)
-    seen = np.asarray(blur_px, dtype=np.float64) if blur_px is not None else edge_blur_px(g, q) if len(q) else np.zeros(0)
+    if blur_px is not None:
+        seen = np.asarray(blur_px, dtype=np.float64)
+    else:
+        seen = edge_blur_px(g, q) if len(q) else np.zeros(0)
     bias, sigma = _bias_at(g, seen, q, initial, patterns, quiet_zone, np.full(len(q), np.nan))
     for _ in range(rounds - 1):
         bias, sigma = _bias_at(g, seen, q - bias, initial, patterns, quiet_zone, sigma)

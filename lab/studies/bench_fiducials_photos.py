@@ -439,7 +439,8 @@ def photo_timing_markdown(t: dict) -> list[str]:
         return [f"Time per photograph: skipped ({t['skipped']})."]
     lines = ["Time per photograph (tests/data/photos, 640x480 and 799x533; median over the photos of each one's "
              "median of the repeats, interleaved; CPU: the process's own time, aruco's threads included):", "",
-             "| detector | median | sum over the photos | CPU median | tags found, per photo |", "|---|---|---|---|---|"]
+             "| detector | median | sum over the photos | CPU median | tags found, per photo |",
+             "|---|---|---|---|---|"]
     for k, v in t.items():
         lines.append(f"| {k} | {v['median_ms']:.1f} ms | {v['sum_ms']:.1f} ms | {v['cpu_median_ms']:.1f} ms "
                      f"| {' '.join(str(n) for n in v['found'])} |")
