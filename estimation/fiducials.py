@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 from estimation.quad_bias import blur_bias
-from estimation.tag_quads import code_bits, fit_quads, identify, read_bits, ring_deviation
+from estimation.tag_quads import code_bits, edge_blur_px, fit_quads, identify, read_bits, ring_deviation
 from lab.core.geometry import Pose3, Rot3
 
 __all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges",
@@ -91,6 +91,26 @@ class DetectorConfig:
     # (`estimation.quad_bias`: under a 1.6 px lens a 4 px cell's square reads 0.05-0.5 px small).
     # Needs the quiet zone (the model draws it).
     correct_blur_bias: bool = True
+    # aruco's candidate search runs on a copy of the frame smoothed by a 3 x 3 bilateral filter of
+    # this range sigma (grey levels; 0: off); the edge fit, the bits and every check read the frame
+    # itself.  Why: on a noisy frame (the realistic default camera: read noise 7 grey levels plus shot
+    # noise) aruco's three adaptive thresholds break the flat areas into some 2 x 10^5 speckle
+    # contours a frame, and tracing them is most of aruco's time (40 ms of a 1280x720 frame here).  A
+    # bilateral filter at ~3 sigma of that noise removes the speckle and keeps the tags' edges (150+
+    # grey levels of contrast) and their thinnest foreshortened cells, where a Gaussian of 0.6 px lost
+    # 6 of 386 tags of the README's main job.  Measured (docs/fiducials.md, "Time"): the main job's
+    # 206 frames, aruco 40 -> 12-15 ms; of their 1158 tags 5 lost and 12 more found, all of them
+    # turned ~80 deg (short sides 10-16 px), at the detector's limit either way.  Off for other
+    # people's tags (photographs, `quiet_zone=False` studies): on JPEG-q35 copies of the photographs
+    # it loses 5 of 54 tags (the filter keeps the compression's block edges and smooths the small
+    # tags' cells).
+    # None: 20 for the lab's tags (`quiet_zone`), 0 for others.
+    candidate_filter_grey: float | None = None
+
+
+CANDIDATE_FILTER_PX = 3        # `DetectorConfig.candidate_filter_grey`'s neighbourhood (px; spatial sigma half of it)
+# ... and its range sigma for the lab's tags (grey levels: ~3 sigma of the default camera's noise)
+CANDIDATE_FILTER_GREY = 20.0
 
 
 @lru_cache(maxsize=64)
@@ -179,7 +199,7 @@ class TagDetector:
         any pose: aruco's decoded quads, and the quads it found but could not decode that our own
         read of the refined quad identifies."""
         cfg = self.config
-        corners, ids, rejected = self._detector.detectMarkers(grey)
+        corners, ids, rejected = self.candidates(grey)
         ids = [] if ids is None else [int(t) for t in ids.reshape(-1)]
         mine = [i for i, t in enumerate(ids) if t in self.sizes]
         quads = np.array([corners[i].reshape(4, 2) for i in mine], dtype=np.float64).reshape(-1, 4, 2)
@@ -213,13 +233,26 @@ class TagDetector:
         corners = np.concatenate(found).reshape(-1, 4, 2)
         initial = np.concatenate(started).reshape(-1, 4, 2)
         if cfg.quiet_zone and len(corners):
-            clear = ring_deviation(grey, corners) <= cfg.max_ring_deviation
+            blur = edge_blur_px(grey, corners)              # read once: the ring's scale and the bias model's
+            clear = ring_deviation(grey, corners, blur) <= cfg.max_ring_deviation
             found_ids = [t for t, c in zip(found_ids, clear) if c]
-            corners, initial = corners[clear], initial[clear]
-        if cfg.correct_blur_bias and cfg.quiet_zone and len(corners):     # the model draws the quiet zone
-            bias, _ = blur_bias(grey, corners, initial, self._codes[np.asarray(found_ids)], cfg.quiet_zone)
-            corners = corners - bias
+            corners, initial, blur = corners[clear], initial[clear], blur[clear]
+            if cfg.correct_blur_bias and len(corners):      # the model draws the quiet zone
+                bias, _ = blur_bias(grey, corners, initial, self._codes[np.asarray(found_ids)], cfg.quiet_zone,
+                                    blur_px=blur)
+                corners = corners - bias
         return found_ids, corners
+
+    def candidates(self, grey: np.ndarray) -> tuple:
+        """aruco's decoded quads, their ids and its rejected quads (`detectMarkers`' three outputs),
+        searched for on the frame smoothed as `DetectorConfig.candidate_filter_grey` says."""
+        search = grey
+        smooth = self.config.candidate_filter_grey
+        if smooth is None:
+            smooth = CANDIDATE_FILTER_GREY if self.config.quiet_zone else 0.0
+        if smooth > 0 and grey.dtype == np.uint8:
+            search = cv2.bilateralFilter(grey, CANDIDATE_FILTER_PX, smooth, CANDIDATE_FILTER_PX / 2)
+        return self._detector.detectMarkers(search)
 
     def refine(self, grey: np.ndarray, ids: Sequence[int], quads: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Edge-fitted corners of quads of known ids and whether each passed every check."""

@@ -36,7 +36,7 @@ from estimation.tag_quads import CELLS, MAX_REACH_PX, MIN_REACH_PX, _bilinear, _
 __all__ = ["needs_correction", "blur_bias"]
 
 SUPERSAMPLE = 4          # sub-pixels per pixel, each way
-MARGIN_CELLS = 3         # background drawn past the quiet zone
+MARGIN_CELLS = 1         # background drawn past the quiet zone
 # Tags are left as fitted where the fit's bias is under ~0.01 px: windows ending CLEAR_SIGMAS of the
 # apparent blur clear of the next edge and reaching CONVERGE_SIGMAS of it across their own (a model
 # fitted to a noisy patch adds a few thousandths of a pixel of its own)
@@ -150,14 +150,22 @@ def _fit_levels(y: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def blur_bias(grey: np.ndarray, corners: np.ndarray, initial: np.ndarray, patterns: np.ndarray,
-              quiet_zone: bool = True, rounds: int = 2) -> tuple[np.ndarray, np.ndarray]:
+              quiet_zone: bool = True, rounds: int = 2, blur_px: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
     """The edge fit's bias (see `_bias_at`), the model drawn first at the fitted corners, then at
     the corners less the bias found (the model's blur and levels are fitted to the photograph at
-    its corners, and fit better where the corners are right)."""
+    its corners, and fit better where the corners are right).  `blur_px`: the photograph's
+    `edge_blur_px` at `corners`, if the caller has it already."""
     q = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
-    bias, sigma = _bias_at(grey, q, q, initial, patterns, quiet_zone, np.full(len(q), np.nan))
+    g = np.ascontiguousarray(grey, dtype=np.float32)
+    # the photograph's edge blur, read once at the fitted corners (every round's model matches it)
+    if blur_px is not None:
+        seen = np.asarray(blur_px, dtype=np.float64)
+    else:
+        seen = edge_blur_px(g, q) if len(q) else np.zeros(0)
+    bias, sigma = _bias_at(g, seen, q, initial, patterns, quiet_zone, np.full(len(q), np.nan))
     for _ in range(rounds - 1):
-        bias, sigma = _bias_at(grey, q, q - bias, initial, patterns, quiet_zone, sigma)
+        bias, sigma = _bias_at(g, seen, q - bias, initial, patterns, quiet_zone, sigma)
     # one larger than MAX_BIAS_CELLS of a cell is the model's failure, not the fit's
     wild = np.max(np.linalg.norm(bias, axis=2), axis=1) > MAX_BIAS_CELLS * _cell_px(q) if len(q) else np.zeros(0, bool)
     bias[wild] = 0.0
@@ -165,10 +173,11 @@ def blur_bias(grey: np.ndarray, corners: np.ndarray, initial: np.ndarray, patter
     return bias, sigma
 
 
-def _bias_at(grey: np.ndarray, fitted: np.ndarray, corners: np.ndarray, initial: np.ndarray, patterns: np.ndarray,
+def _bias_at(g: np.ndarray, seen: np.ndarray, corners: np.ndarray, initial: np.ndarray, patterns: np.ndarray,
              quiet_zone: bool, start_sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The edge fit's bias at each tag (N, 4, 2; zero where `needs_correction` is False) and the
-    blur sigma the model matched (N,; nan where not needed).  corners: the fitted quads (corner 0
+    blur sigma the model matched (N,; nan where not needed).  g: the photograph (float32); seen: its
+    edge blur at the fitted quads (`edge_blur_px`, N,); corners: where the model is drawn (corner 0
     = the marker's top-left); initial: the quads the fit started from, in the same corner order;
     patterns: the tags' cells (N, 8, 8; True = white)."""
     q = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
@@ -177,8 +186,6 @@ def _bias_at(grey: np.ndarray, fitted: np.ndarray, corners: np.ndarray, initial:
     sigma = np.full(N, np.nan)
     if N == 0:
         return bias, sigma
-    g = np.ascontiguousarray(grey, dtype=np.float32)
-    seen = edge_blur_px(g, fitted)
     todo = np.flatnonzero(needs_correction(q, seen) & np.isfinite(seen))
     if len(todo) == 0:
         return bias, sigma

@@ -5,7 +5,7 @@ What it measures, on the simulated rig's camera (lab/rigs/sim.toml: 1280x720, f 
 barrel distortion, 2 grey levels of noise, 0.6 px blur) with the BORG tag (10 cm black square):
 - time per 1280x720 frame: `TagDetector.detect` on a frame with 20 tags and on a frame with one,
   and the renderer's time for the same frames; ours against AprilTag 3 on the same 20-tag frames
-  (`bench_fiducials_photos.timing_study`);
+  (`bench_fiducials_photos.timing_study`), and on the photographs (`photo_timing_study`);
 - corner error against the renderer's projected truth, noise-free and with the sim's noise, and the
   tilt a single view of a frontal tag at 2 m reads (`bench_fiducials_corners`);
 - detection on photographs (tests/data/photos) and rendered frames, each degraded (blur, JPEG,
@@ -195,6 +195,8 @@ def _markdown(res: dict, command: str) -> str:
     lines.append("")
     lines += photos.markdown(res["photos"], res["rendered"], res["timing_vs_apriltag3"])
     lines.append("")
+    lines += photos.photo_timing_markdown(res["timing_photos"])
+    lines.append("")
     lines += corners.markdown(res["corners"], res["tilt"])
     lines.append("")
     lines += photos.quality_markdown(res["image_quality"])
@@ -255,6 +257,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     res = {"command": command, "timing": timing_study(frames, seed),
            "timing_vs_apriltag3": photos.timing_study(frames, seed),
+           "timing_photos": photos.photo_timing_study(3 if quick else 7),
            "corners": corners.corner_study(24 if quick else 120, seed),
            "tilt": corners.tilt_study(20 if quick else 100, seed),
            "photos": photos.photo_study(quick),

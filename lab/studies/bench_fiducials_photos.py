@@ -365,7 +365,7 @@ def timing_study(frames: int, seed: int) -> dict:
     grey = [img[:, :, 0].copy() for img, _ in twenty_tag_frames(frames, seed)]
     det = TagDetector(K, dist, {i: 0.10 for i in range(64)})
     runs: dict[str, Callable] = {"ours: detect (corners + poses)": det.detect, "ours: corners only": det.find,
-                                 "  of which aruco's detectMarkers": lambda g: det._detector.detectMarkers(g)[1]}
+                                 "  of which aruco's candidate search": lambda g: det.candidates(g)[1]}
     if apriltag3.available():
         runs["AprilTag 3, quad_decimate 1"] = lambda g: apriltag3.detect(g, 1.0)
         runs["AprilTag 3, quad_decimate 2 (its default)"] = lambda g: apriltag3.detect(g, 2.0)
@@ -385,6 +385,66 @@ def timing_study(frames: int, seed: int) -> dict:
     return {k: {"median_ms": float(np.median(v) * 1e3), "min_ms": float(np.min(v) * 1e3),
                 "cpu_median_ms": float(np.median(cpu[k]) * 1e3),
                 "found_mean": float(np.mean(found[k])), "frames": len(v)} for k, v in wall.items()}
+
+
+def photo_timing_study(repeats: int = 5, photo_dir: str = PHOTO_DIR) -> dict:
+    """ms per photograph (tests/data/photos: 640x480 and 799x533, 1-23 tags each), ours as the
+    photographs' studies run it (`_ours`: every id, no quiet zone), aruco's candidate search alone,
+    and AprilTag 3 at its defaults (quad_decimate 2, one thread) and at quad_decimate 1; each photo
+    `repeats` times, the detectors interleaved so that a busy machine slows them alike.  Per photo
+    the median over the repeats; then the median and the sum over the photos."""
+    import cv2
+    import numpy as np
+
+    from lab.studies import apriltag3
+    from estimation.fiducials import DetectorConfig, TagDetector
+
+    ref = load_reference(photo_dir)
+    if ref is None:
+        return {"skipped": f"no reference.json in {photo_dir}"}
+    det = TagDetector(np.eye(3), np.zeros(5), {i: 1.0 for i in range(587)}, DetectorConfig(quiet_zone=False))
+    runs: dict[str, Callable] = {"ours (corners, every check)": det.find,
+                                 "  of which aruco's candidate search": lambda g: det.candidates(g)[1]}
+    if apriltag3.available():
+        runs["AprilTag 3, its defaults (quad_decimate 2, 1 thread)"] = lambda g: apriltag3.detect(g, 2.0)
+        runs["AprilTag 3, quad_decimate 1"] = lambda g: apriltag3.detect(g, 1.0)
+    photos = [cv2.imread(os.path.join(photo_dir, p["file"]), cv2.IMREAD_GRAYSCALE) for p in ref["photos"]]
+    for g in photos:
+        for f in runs.values():
+            f(g)                                                  # warm up
+    per: dict[str, list] = {k: [] for k in runs}
+    cpu: dict[str, list] = {k: [] for k in runs}
+    found: dict[str, list] = {k: [] for k in runs}
+    for g in photos:
+        wall = {k: [] for k in runs}
+        proc = {k: [] for k in runs}
+        for _ in range(repeats):
+            for k, f in runs.items():
+                t0, c0 = time.perf_counter(), time.process_time()
+                r = f(g)
+                wall[k].append(time.perf_counter() - t0)
+                proc[k].append(time.process_time() - c0)
+        for k, f in runs.items():
+            per[k].append(float(np.median(wall[k])))
+            cpu[k].append(float(np.median(proc[k])))
+            r = f(g)
+            found[k].append(0 if r is None else len(r[0]) if isinstance(r, tuple) else len(r))
+    return {k: {"median_ms": float(np.median(v) * 1e3), "sum_ms": float(np.sum(v) * 1e3),
+                "cpu_median_ms": float(np.median(cpu[k]) * 1e3), "per_photo_ms": [x * 1e3 for x in v],
+                "found": found[k], "photos": len(v), "repeats": repeats} for k, v in per.items()}
+
+
+def photo_timing_markdown(t: dict) -> list[str]:
+    if "skipped" in t:
+        return [f"Time per photograph: skipped ({t['skipped']})."]
+    lines = ["Time per photograph (tests/data/photos, 640x480 and 799x533; median over the photos of each one's "
+             "median of the repeats, interleaved; CPU: the process's own time, aruco's threads included):", "",
+             "| detector | median | sum over the photos | CPU median | tags found, per photo |",
+             "|---|---|---|---|---|"]
+    for k, v in t.items():
+        lines.append(f"| {k} | {v['median_ms']:.1f} ms | {v['sum_ms']:.1f} ms | {v['cpu_median_ms']:.1f} ms "
+                     f"| {' '.join(str(n) for n in v['found'])} |")
+    return lines
 
 
 # ---- output -----------------------------------------------------------------------------------
