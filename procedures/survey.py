@@ -166,6 +166,7 @@ class SurveyPlanner:
         self._ids = np.array(ids)
         self._index = {t: i for i, t in enumerate(ids)}
         self._geometry_cache: dict[View, _ViewGeometry] = {}
+        self._facing_cache: dict[int, list[View]] = {}
         self._reachable = reachable
         self._turntable_limits = turntable_limits_rad
         c = self.config
@@ -256,11 +257,16 @@ class SurveyPlanner:
         self._geometry_cache[view] = g
         return g
 
-    def visible(self, view: View, present: Iterable[int], among: Iterable[int] | None = None) -> list[int]:
+    def present_index(self, present: Iterable[int]) -> np.ndarray:
+        """`present` (tag ids) as sorted indices into the planner's tag table, for `visible`."""
+        return np.array(sorted(self._index[t] for t in present), dtype=int)
+
+    def visible(self, view: View, present: Iterable[int] | np.ndarray, among: Iterable[int] | None = None) -> list[int]:
         """Tags of `present` predicted readable in `view`, nearest first (only those of `among`,
-        if given: the others still hide what is behind them)."""
+        if given: the others still hide what is behind them).  `present` may be tag ids or, for a
+        caller asking about many views, `present_index(ids)` once."""
         g = self._geometry(view)
-        idx = np.array([self._index[t] for t in present], dtype=int)
+        idx = present if isinstance(present, np.ndarray) else np.array([self._index[t] for t in present], dtype=int)
         idx = idx[g.ok[idx]] if len(idx) else idx
         if not len(idx):
             return []
@@ -275,6 +281,19 @@ class SurveyPlanner:
                 return []
         keep = unoccluded(g.lo[idx], g.hi[idx], rows, self.config.occlusion_overlap)
         return [int(t) for t in self._ids[idx[rows[keep]]]]
+
+    def _ok(self, views: Sequence[View]) -> np.ndarray:
+        """(V, T): which tags each of `views` could read on its own (before occlusion)."""
+        if not views:
+            return np.zeros((0, len(self._ids)), bool)
+        return np.stack([self._geometry(v).ok for v in views])
+
+    def _seeing(self, views: Sequence[View], tags: Iterable[int], ok: np.ndarray | None = None) -> list[View]:
+        """Those of `views` in which at least one of `tags` could be read (the others cannot see
+        them whatever is in front: the only ones worth the occlusion test)."""
+        idx = [self._index[t] for t in tags]
+        ok = self._ok(views) if ok is None else ok
+        return [views[i] for i in np.flatnonzero(ok[:, idx].any(axis=1))] if idx else []
 
     # ---- which views: heights and wider looks ------------------------------------------------------
     def _choose_view_sets(self) -> tuple[tuple[float, bool], ...]:
@@ -313,13 +332,18 @@ class SurveyPlanner:
             if group not in cache:
                 h, wide = group
                 views = [self._at(v, h) for v in (self._wide if wide else self._standard)]
+                ok = self._ok(views)
+                facing = {f: self._facing_mask(f, views) for f in range(5)}
                 out: dict[int, list[float]] = {}
                 for name, tags, placed in steps:
                     idx = [self._index[t] for t in tags]
-                    for v in (self._facing(name, views) if name else views):
-                        if not self._geometry(v).ok[idx].any():
-                            continue
-                        for t in self.visible(v, placed, among=tags):
+                    mask = ok[:, idx].any(axis=1)
+                    if name:
+                        mask &= facing[self._face_of(name)]
+                    present = self.present_index(placed)
+                    for i in np.flatnonzero(mask):
+                        v = views[i]
+                        for t in self.visible(v, present, among=tags):
                             out.setdefault(t, []).append(v.turntable_rad)
                 cache[group] = out
             return cache[group]
@@ -375,7 +399,9 @@ class SurveyPlanner:
             present.update(model.module_by_name[name].tags)
         new = list(model.module_by_name[module].tags)
         related = {t: [r for r in _related(model, t) if r in present and r not in new] for t in new}
-        sight = {v: self.visible(v, present) for v in self._facing(module)}
+        # only views that can read one of the new tags can gain anything (coverage or accuracy)
+        present_idx = self.present_index(present)
+        sight = {v: self.visible(v, present_idx) for v in self._seeing(self._facing(module), new)}
         # requirements: each new tag seen min_sightings times; each new tag seen with a related tag;
         # the new module's tags seen together (deployables: B and T in one view)
         need_count = {t: self.config.min_sightings for t in new}
@@ -435,7 +461,11 @@ class SurveyPlanner:
         present = set(self.model.turntable.tag_ids)
         for name in placed_modules:
             present.update(self.model.module_by_name[name].tags)
-        sight = {v: self.visible(v, present) for v in self._facing(module) if v not in taken}
+        present_idx = self.present_index(present)
+        taken_set = set(taken)
+        sight = {v: self.visible(v, present_idx)
+                 for v in self._seeing(self._facing(module), self.model.module_by_name[module].tags)
+                 if v not in taken_set}
         info = np.zeros((6, 6)) if tag_covariance is None else np.linalg.inv(tag_covariance)
         views, predicted = self._accurate(module, list(sight), sight, precision, info, budget)
         views.sort(key=_order)
@@ -445,12 +475,25 @@ class SurveyPlanner:
     def _facing(self, module: str, candidates: Sequence[View] | None = None) -> list[View]:
         """Candidates that can see the module's face at all (the others only cost time to check)."""
         candidates = self.candidates if candidates is None else candidates
+        if candidates is self.candidates:
+            face = self._face_of(module)
+            if face not in self._facing_cache:
+                self._facing_cache[face] = [v for v, f in zip(candidates, self._facing_mask(face, candidates)) if f]
+            return self._facing_cache[face]
+        return [v for v, f in zip(candidates, self._facing_mask(self._face_of(module), candidates)) if f]
+
+    def _face_of(self, module: str) -> int:
         face = self.model.module_by_name[module].face
+        return face if 1 <= face <= 4 else 0
+
+    @staticmethod
+    def _facing_mask(face: int, views: Sequence[View]) -> np.ndarray:
+        """Which of `views` turn face `face` (1..4; 0: any) toward the camera, within 70 degrees."""
         if not 1 <= face <= 4:
-            return list(candidates)
+            return np.ones(len(views), bool)
         centre = (face - 1) * np.pi / 2
-        return [v for v in candidates
-                if abs((v.turntable_rad - centre + np.pi) % (2 * np.pi) - np.pi) <= np.radians(70.0)]
+        a = np.array([v.turntable_rad for v in views], float)
+        return np.abs((a - centre + np.pi) % (2 * np.pi) - np.pi) <= np.radians(70.0)
 
     def _verdict_tag(self, module: str) -> int:
         return self.model.module_by_name[module].tags[0]
