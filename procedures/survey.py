@@ -167,6 +167,8 @@ class SurveyPlanner:
         self._index = {t: i for i, t in enumerate(ids)}
         self._geometry_cache: dict[View, _ViewGeometry] = {}
         self._facing_cache: dict[int, list[View]] = {}
+        self._cover_cache: dict[View, np.ndarray] = {}
+        self._ok_cache: dict[int, tuple[Sequence[View], np.ndarray]] = {}
         self._reachable = reachable
         self._turntable_limits = turntable_limits_rad
         c = self.config
@@ -292,8 +294,73 @@ class SurveyPlanner:
         """Those of `views` in which at least one of `tags` could be read (the others cannot see
         them whatever is in front: the only ones worth the occlusion test)."""
         idx = [self._index[t] for t in tags]
-        ok = self._ok(views) if ok is None else ok
+        if ok is None:
+            # the candidates facing one face are asked about at every step: their table is kept
+            key = id(views)
+            hit = self._ok_cache.get(key)
+            if hit is None or hit[0] is not views:
+                hit = (views, self._ok(views))
+                if any(views is f for f in self._facing_cache.values()):
+                    self._ok_cache[key] = hit
+            ok = hit[1]
         return [views[i] for i in np.flatnonzero(ok[:, idx].any(axis=1))] if idx else []
+
+    @cached_property
+    def _step_of(self) -> np.ndarray:
+        """(T,): the assembly step at which each tag appears (0: the turntable's, k: the k-th module's)."""
+        out = np.zeros(len(self._ids), int)
+        for k, m in enumerate(self.model.modules, start=1):
+            out[[self._index[t] for t in m.tags]] = k
+        return out
+
+    @cached_property
+    def _tag_face(self) -> np.ndarray:
+        """(T,): the face whose views may see each tag (its module's; 0: any, the turntable's)."""
+        out = np.zeros(len(self._ids), int)
+        for m in self.model.modules:
+            out[[self._index[t] for t in m.tags]] = self._face_of(m.name)
+        return out
+
+    def _cover(self, view: View) -> np.ndarray:
+        """(T,): for each tag `view` could read, the first assembly step at which a nearer readable
+        tag covers it (`visible`'s occlusion rule), a step past the last where none does.  With it
+        a view's visible tags at any step of the assembly order are one comparison: readable, placed
+        (`_step_of` <= step) and not yet covered (`_cover` > step)."""
+        c = self._cover_cache.get(view)
+        if c is not None:
+            return c
+        g = self._geometry(view)
+        never = len(self.model.modules) + 1
+        c = np.full(len(self._ids), never, int)
+        idx = np.flatnonzero(g.ok)
+        if len(idx):
+            idx = idx[np.lexsort((self._ids[idx], g.depth[idx]))]        # nearest first, as `visible`
+            lo, hi = g.lo[idx], g.hi[idx]
+            area = np.prod(hi - lo, axis=1)
+            inter = np.prod(np.clip(np.minimum(hi[:, None], hi[None]) - np.maximum(lo[:, None], lo[None]), 0, None),
+                            axis=2)
+            covers = (inter > self.config.occlusion_overlap * area[:, None]) & np.tri(len(idx), k=-1, dtype=bool)
+            steps = np.where(covers, self._step_of[idx][None, :], never)
+            c[idx] = steps.min(axis=1)
+        self._cover_cache[view] = c
+        return c
+
+    def _visible_at(self, view: View, step: int) -> list[int]:
+        """`visible(view, present)` for the tags present at assembly step `step` (the turntable's
+        and the first `step` modules'), from `_cover`: the same tags, nearest first."""
+        g = self._geometry(view)
+        idx = np.flatnonzero(g.ok & (self._step_of <= step) & (self._cover(view) > step))
+        idx = idx[np.lexsort((self._ids[idx], g.depth[idx]))]
+        return [int(t) for t in self._ids[idx]]
+
+    def _step_of_placed(self, placed_modules: Sequence[str]) -> int | None:
+        """The assembly step `placed_modules` stands for, if it is the assembly order's first
+        modules (a run's steps); None otherwise."""
+        k = len(placed_modules)
+        order = self.model.modules
+        if k <= len(order) and all(order[i].name == n for i, n in enumerate(placed_modules)):
+            return k
+        return None
 
     # ---- which views: heights and wider looks ------------------------------------------------------
     def _choose_view_sets(self) -> tuple[tuple[float, bool], ...]:
@@ -332,19 +399,17 @@ class SurveyPlanner:
             if group not in cache:
                 h, wide = group
                 views = [self._at(v, h) for v in (self._wide if wide else self._standard)]
-                ok = self._ok(views)
-                facing = {f: self._facing_mask(f, views) for f in range(5)}
+                # each view: which tags it reads at their own step (nothing placed later in front)
+                own = np.stack([self._geometry(v).ok & (self._cover(v) > self._step_of) for v in views])
+                facing = np.stack([self._facing_mask(f, views) for f in range(5)])
+                angles_of = np.array([v.turntable_rad for v in views])
                 out: dict[int, list[float]] = {}
-                for name, tags, placed in steps:
-                    idx = [self._index[t] for t in tags]
-                    mask = ok[:, idx].any(axis=1)
-                    if name:
-                        mask &= facing[self._face_of(name)]
-                    present = self.present_index(placed)
-                    for i in np.flatnonzero(mask):
-                        v = views[i]
-                        for t in self.visible(v, present, among=tags):
-                            out.setdefault(t, []).append(v.turntable_rad)
+                for _, tags, _ in steps:
+                    for t in tags:
+                        i = self._index[t]
+                        seen = np.flatnonzero(own[:, i] & facing[self._tag_face[i]])
+                        if len(seen):
+                            out[t] = [float(a) for a in angles_of[seen]]
                 cache[group] = out
             return cache[group]
 
@@ -400,8 +465,7 @@ class SurveyPlanner:
         new = list(model.module_by_name[module].tags)
         related = {t: [r for r in _related(model, t) if r in present and r not in new] for t in new}
         # only views that can read one of the new tags can gain anything (coverage or accuracy)
-        present_idx = self.present_index(present)
-        sight = {v: self.visible(v, present_idx) for v in self._seeing(self._facing(module), new)}
+        sight = self._sight(module, placed_modules, present, self._seeing(self._facing(module), new))
         # requirements: each new tag seen min_sightings times; each new tag seen with a related tag;
         # the new module's tags seen together (deployables: B and T in one view)
         need_count = {t: self.config.min_sightings for t in new}
@@ -461,15 +525,23 @@ class SurveyPlanner:
         present = set(self.model.turntable.tag_ids)
         for name in placed_modules:
             present.update(self.model.module_by_name[name].tags)
-        present_idx = self.present_index(present)
         taken_set = set(taken)
-        sight = {v: self.visible(v, present_idx)
-                 for v in self._seeing(self._facing(module), self.model.module_by_name[module].tags)
-                 if v not in taken_set}
+        sight = self._sight(module, placed_modules, present,
+                            [v for v in self._seeing(self._facing(module), self.model.module_by_name[module].tags)
+                             if v not in taken_set])
         info = np.zeros((6, 6)) if tag_covariance is None else np.linalg.inv(tag_covariance)
         views, predicted = self._accurate(module, list(sight), sight, precision, info, budget)
         views.sort(key=_order)
         return SurveyPlan(module, views, [sight[v] for v in views], [], predicted)
+
+    def _sight(self, module: str, placed_modules: Sequence[str], present: set[int],
+               views: Sequence[View]) -> dict[View, list[int]]:
+        """View -> the present tags it is predicted to read, for `views`."""
+        step = self._step_of_placed(placed_modules)
+        if step is not None:
+            return {v: self._visible_at(v, step) for v in views}
+        present_idx = self.present_index(present)
+        return {v: self.visible(v, present_idx) for v in views}
 
     # ---- accuracy ------------------------------------------------------------------------------
     def _facing(self, module: str, candidates: Sequence[View] | None = None) -> list[View]:
@@ -521,6 +593,23 @@ class SurveyPlanner:
         tag_T_module = self.model.tags[tag].structure_T_tag.inverse().compose(m.structure_T_module)
         return module_sigma(tag_T_module, cov).position_m
 
+    def _predicted_sigmas(self, module: str, infos: np.ndarray) -> np.ndarray:
+        """`predicted_sigma` of each of a stack of information matrices (C, 6, 6), in one pass:
+        the same arithmetic (estimation.precision's covariance_from_information, module_sigma)."""
+        info = 0.5 * (infos + np.swapaxes(infos, 1, 2))
+        w = np.linalg.eigvalsh(info)
+        observed = w.min(axis=1) > 1e-9 * np.maximum(w.max(axis=1), 1e-30)
+        cov = np.linalg.inv(np.where(observed[:, None, None], info, np.eye(6)))
+        cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+        tag = self._verdict_tag(module)
+        m = self.model.module_by_name[module]
+        lever = self.model.tags[tag].structure_T_tag.inverse().compose(m.structure_T_module).translation()
+        J = np.hstack([-np.array([[0.0, -lever[2], lever[1]], [lever[2], 0.0, -lever[0]], [-lever[1], lever[0], 0.0]]),
+                       np.eye(3)])
+        pos = J @ cov @ J.T
+        out = np.sqrt(np.maximum(np.linalg.eigvalsh(pos).max(axis=1), 0.0))
+        return np.where(observed, out, np.inf)
+
     def _accurate(self, module: str, candidates: list[View], sight: dict[View, list[int]],
                   precision: PrecisionTarget, info: np.ndarray, budget: int) -> tuple[list[View], float]:
         """Greedy: the view that shrinks the predicted sigma most, until the target or the budget."""
@@ -529,7 +618,10 @@ class SurveyPlanner:
         chosen: list[View] = []
         sigma = self.predicted_sigma(module, info)
         while sigma > precision.sigma_m and len(chosen) < budget and gains:
-            best = min(gains, key=lambda v: (self.predicted_sigma(module, info + gains[v]), abs(v.turntable_rad)))
+            views = list(gains)
+            sigmas = self._predicted_sigmas(module, info + np.stack([gains[v] for v in views]))
+            best = min(range(len(views)), key=lambda i: (sigmas[i], abs(views[i].turntable_rad)))
+            best = views[best]
             info = info + gains.pop(best)
             chosen.append(best)
             sigma = self.predicted_sigma(module, info)
