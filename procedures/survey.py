@@ -21,7 +21,7 @@ step's `unobservable`, before anything moves.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Callable, Iterable, Sequence
 
@@ -166,6 +166,9 @@ class SurveyPlanner:
         self._ids = np.array(ids)
         self._index = {t: i for i, t in enumerate(ids)}
         self._geometry_cache: dict[View, _ViewGeometry] = {}
+        self._camera_of: Callable[[View], Pose3] | None = None    # an adapted planner's camera poses
+        self._tag_poses: dict[int, Pose3] = {}                     # ... and tag poses (else the design)
+        self._missed: dict[int, list[View]] = {}                   # ... and where tags were not seen
         self._facing_cache: dict[int, list[View]] = {}
         self._cover_cache: dict[View, np.ndarray] = {}
         self._ok_cache: dict[int, tuple[Sequence[View], np.ndarray]] = {}
@@ -222,17 +225,48 @@ class SurveyPlanner:
             t = self.model.tags[int(tid)]
             h = t.size_m / 2
             local = np.array([[-h, -h, 0, 1], [h, -h, 0, 1], [h, h, 0, 1], [-h, h, 0, 1]])
-            out[i] = (t.structure_T_tag.matrix() @ local.T).T[:, :3]
+            out[i] = (self.structure_T_tag(int(tid)).matrix() @ local.T).T[:, :3]
         return out
 
     @cached_property
     def _tag_frames(self) -> tuple[np.ndarray, np.ndarray]:
         """(T, 3) centres and (T, 3) normals in the structure frame."""
-        poses = [self.model.tags[int(t)].structure_T_tag for t in self._ids]
+        poses = [self.structure_T_tag(int(t)) for t in self._ids]
         return (np.array([p.translation() for p in poses]), np.array([p.rotation().matrix()[:, 2] for p in poses]))
 
     def structure_T_camera(self, view: View) -> Pose3:
+        if self._camera_of is not None:
+            return self._camera_of(view)
         return self.model.world_T_structure(view.turntable_rad).inverse().compose(self.camera.world_T_camera(view))
+
+    def structure_T_tag(self, tag: int) -> Pose3:
+        """Where the planner expects the tag: the design's pose, or (an adapted planner) the
+        estimate it was given."""
+        pose = self._tag_poses.get(tag)
+        return pose if pose is not None else self.model.tags[tag].structure_T_tag
+
+    def adapted(self, structure_T_camera: Callable[[View], Pose3], tag_poses: dict[int, Pose3],
+                K: np.ndarray | None = None, missed: dict[int, list[View]] | None = None) -> "SurveyPlanner":
+        """The same candidates (heights, turntable angles, platform poses), judged from what a run
+        has learnt: each view's camera where the calibrated rig puts it (`structure_T_camera`,
+        e.g. the graph's current calibration), the tags where the graph estimates them
+        (`tag_poses`; the design for the others) and the calibrated intrinsics `K`.  `missed`:
+        tag -> views taken that were expected to show it and did not; a candidate from nearly the
+        same place (the same lift height, the turntable within `MISSED_TURN_RAD`) is not counted
+        on to show it either (what hid it -- a strut, glare, an edge of the frame the prediction
+        puts just inside -- is likely to hide it again)."""
+        import copy
+
+        out = copy.copy(self)
+        for name in ("_tag_corners", "_tag_frames"):
+            out.__dict__.pop(name, None)
+        out._camera_of = structure_T_camera
+        out._tag_poses = dict(tag_poses)
+        out._missed = {t: list(v) for t, v in (missed or {}).items() if v}
+        if K is not None:
+            out.camera = replace(self.camera, K=np.asarray(K, float))
+        out._geometry_cache, out._cover_cache, out._ok_cache = {}, {}, {}
+        return out
 
     def _geometry(self, view: View) -> _ViewGeometry:
         g = self._geometry_cache.get(view)
@@ -245,17 +279,25 @@ class SurveyPlanner:
         to_cam = s_T_c.translation() - centres
         dist = np.linalg.norm(to_cam, axis=1)
         facing = (dist <= c.max_distance_m) & (np.einsum("ij,ij->i", normals, to_cam) / dist >= np.cos(c.max_view_angle_rad))
-        pc = self._tag_corners @ c_T_s[:3, :3].T + c_T_s[:3, 3]
+        # only the tags facing the camera can be read: project those (the others' rows stay NaN)
+        f = np.flatnonzero(facing)
+        pc = self._tag_corners[f] @ c_T_s[:3, :3].T + c_T_s[:3, 3]
         front = np.all(pc[:, :, 2] >= 0.1, axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = (pc / pc[:, :, 2:3]) @ self.camera.K.T
         uv = uv[:, :, :2]
-        lo, hi = uv.min(axis=1), uv.max(axis=1)
-        inside = ((lo[:, 0] >= c.margin_px) & (lo[:, 1] >= c.margin_px)
-                  & (hi[:, 0] <= self.camera.width_px - c.margin_px) & (hi[:, 1] <= self.camera.height_px - c.margin_px))
+        lo_f, hi_f = uv.min(axis=1), uv.max(axis=1)
+        inside = ((lo_f[:, 0] >= c.margin_px) & (lo_f[:, 1] >= c.margin_px)
+                  & (hi_f[:, 0] <= self.camera.width_px - c.margin_px)
+                  & (hi_f[:, 1] <= self.camera.height_px - c.margin_px))
         sides = np.linalg.norm(np.roll(uv, -1, axis=1) - uv, axis=2).min(axis=1)
-        ok = facing & front & inside & (sides >= c.min_side_px)
-        g = _ViewGeometry(ok, pc[:, :, 2].mean(axis=1), lo, hi)
+        ok = np.zeros(len(facing), bool)
+        ok[f] = front & inside & (sides >= c.min_side_px)
+        depth = np.full(len(facing), np.nan)
+        depth[f] = pc[:, :, 2].mean(axis=1)
+        lo, hi = np.full((len(facing), 2), np.nan), np.full((len(facing), 2), np.nan)
+        lo[f], hi[f] = lo_f, hi_f
+        g = _ViewGeometry(ok, depth, lo, hi)
         self._geometry_cache[view] = g
         return g
 
@@ -456,16 +498,26 @@ class SurveyPlanner:
         grow(seen_once)
         return tuple(chosen)
 
-    def plan(self, module: str, placed_modules: Sequence[str], precision: PrecisionTarget | None = None) -> SurveyPlan:
-        """Views for the step that placed `module`; `placed_modules` includes it."""
+    def plan(self, module: str, placed_modules: Sequence[str], precision: PrecisionTarget | None = None, *,
+             exclude: Iterable[View] = (), info: np.ndarray | None = None, fallback: bool = True,
+             want: Iterable[int] | None = None) -> SurveyPlan:
+        """Views for the step that placed `module`; `placed_modules` includes it.  `exclude`: views
+        not to use (a re-plan's: those already taken); `info`: what is already known of the
+        module's verdict tag (information, 6x6) for the accuracy pass; `fallback`: with no view
+        predicted to see the module, still look from its face (a re-plan returns no view);
+        `want`: the module's tags the coverage pass is for (default all of them)."""
         model = self.model
         present = set(model.turntable.tag_ids)
         for name in placed_modules:
             present.update(model.module_by_name[name].tags)
         new = list(model.module_by_name[module].tags)
+        if want is not None:
+            new = [t for t in new if t in set(want)]
         related = {t: [r for r in _related(model, t) if r in present and r not in new] for t in new}
         # only views that can read one of the new tags can gain anything (coverage or accuracy)
-        sight = self._sight(module, placed_modules, present, self._seeing(self._facing(module), new))
+        excluded = set(exclude)
+        sight = self._sight(module, placed_modules, present,
+                            [v for v in self._seeing(self._facing(module), new) if v not in excluded])
         # requirements: each new tag seen min_sightings times; each new tag seen with a related tag;
         # the new module's tags seen together (deployables: B and T in one view)
         need_count = {t: self.config.min_sightings for t in new}
@@ -480,7 +532,7 @@ class SurveyPlanner:
                                        for a in seen_from[t])
 
         for distinct in (True, False):
-            while len(chosen) < self.config.views_per_step:
+            while len(chosen) < min(self.config.views_per_step, precision.max_views if precision else np.inf):
                 def score(v: View) -> tuple[float, float]:
                     s = set(sight[v])
                     gain = sum(1.0 for t in new if need_count[t] > 0 and t in s and fresh(t, v, distinct))
@@ -503,14 +555,15 @@ class SurveyPlanner:
                 if need_together and all(t in s for t in new):
                     need_together = False
                 chosen.append(best)
-        if not chosen:  # nothing sees the new tags: still look, from the face the module is on
+        if not chosen and fallback:  # nothing sees the new tags: still look, from the face the module is on
             face = model.module_by_name[module].face
             chosen = [min(self.candidates, key=lambda v: (abs(v.turntable_rad - (face - 1) * np.pi / 2),
                                                           np.abs(v.stewart_pose).sum(), abs(v.lift_m)))]
         predicted = None
         if precision is not None:
+            known = self._information(module, chosen, sight, precision)
             extra, predicted = self._accurate(module, [v for v in sight if v not in chosen], sight, precision,
-                                              self._information(module, chosen, sight, precision),
+                                              known if info is None else known + info,
                                               precision.max_views - len(chosen))
             chosen += extra
         chosen.sort(key=_order)
@@ -539,9 +592,18 @@ class SurveyPlanner:
         """View -> the present tags it is predicted to read, for `views`."""
         step = self._step_of_placed(placed_modules)
         if step is not None:
-            return {v: self._visible_at(v, step) for v in views}
-        present_idx = self.present_index(present)
-        return {v: self.visible(v, present_idx) for v in views}
+            out = {v: self._visible_at(v, step) for v in views}
+        else:
+            present_idx = self.present_index(present)
+            out = {v: self.visible(v, present_idx) for v in views}
+        if self._missed:
+            out = {v: [t for t in seen if not self._missed_near(t, v)] for v, seen in out.items()}
+        return out
+
+    def _missed_near(self, tag: int, view: View) -> bool:
+        return any(abs(view.lift_m - m.lift_m) < self.config.lift_step_m / 2
+                   and abs((view.turntable_rad - m.turntable_rad + np.pi) % (2 * np.pi) - np.pi) < MISSED_TURN_RAD
+                   for m in self._missed.get(tag, ()))
 
     # ---- accuracy ------------------------------------------------------------------------------
     def _facing(self, module: str, candidates: Sequence[View] | None = None) -> list[View]:
@@ -576,7 +638,7 @@ class SurveyPlanner:
         if tag not in sight.get(view, ()):
             return np.zeros((6, 6))
         spec = self.model.tags[tag]
-        return view_information(self.structure_T_camera(view), spec.structure_T_tag, self.camera.K,
+        return view_information(self.structure_T_camera(view), self.structure_T_tag(tag), self.camera.K,
                                 tag_object_points(spec.size_m), precision.corner_sigma_px,
                                 precision.camera_covariance)
 
@@ -626,6 +688,9 @@ class SurveyPlanner:
             chosen.append(best)
             sigma = self.predicted_sigma(module, info)
         return chosen, sigma
+
+
+MISSED_TURN_RAD = np.radians(10.0)    # a view this close in turntable angle to one that missed a tag
 
 
 def _order(v: View) -> tuple:
