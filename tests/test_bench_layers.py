@@ -54,6 +54,7 @@ def test_the_figures_count_per_layer_and_per_size():
     assert (whole["layer"], whole["modules"], whole["unverified"], whole["false_flags"], whole["good"]) == ("all", 4, 1, 1, 3)
     assert (whole["faults_caught"], whole["faults"], whole["replanned"]) == (1, 1, 2)
     assert whole["error_mm_max"] == pytest.approx(0.8) and whole["views_per_module"] == pytest.approx(4.5)
+    assert whole["ok_error_mm_max"] == pytest.approx(0.2)
     assert whole["wall_s_per_module"] == pytest.approx(10.0) and whole["peak_rss_mb"] == 300.0
     assert (l0["modules"], l0["false_flags"], l0["faults_caught"]) == (2, 0, 1)
     assert (l1["unverified"], l1["false_flags"], l1["error_mm_median"]) == (1, 1, pytest.approx(0.8))
