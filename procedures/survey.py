@@ -29,6 +29,7 @@ import numpy as np
 
 from estimation.fiducials import tag_object_points
 from estimation.precision import covariance_from_information, module_sigma, view_information
+from estimation.semantics import STRUT_END_DIAMETER_M as STRUT_DIAMETER_M
 from lab.core.geometry import Pose3, Rot3, from_xyzrpy
 from lab.core.structures.borg import BorgModel
 
@@ -169,6 +170,7 @@ class SurveyPlanner:
         self._camera_of: Callable[[View], Pose3] | None = None    # an adapted planner's camera poses
         self._tag_poses: dict[int, Pose3] = {}                     # ... and tag poses (else the design)
         self._missed: dict[int, list[View]] = {}                   # ... and where tags were not seen
+        self._strut_tags: set[int] = set()                         # ... and which to check against struts
         self._facing_cache: dict[int, list[View]] = {}
         self._cover_cache: dict[View, np.ndarray] = {}
         self._ok_cache: dict[int, tuple[Sequence[View], np.ndarray]] = {}
@@ -246,7 +248,8 @@ class SurveyPlanner:
         return pose if pose is not None else self.model.tags[tag].structure_T_tag
 
     def adapted(self, structure_T_camera: Callable[[View], Pose3], tag_poses: dict[int, Pose3],
-                K: np.ndarray | None = None, missed: dict[int, list[View]] | None = None) -> "SurveyPlanner":
+                K: np.ndarray | None = None, missed: dict[int, list[View]] | None = None,
+                strut_tags: Iterable[int] = ()) -> "SurveyPlanner":
         """The same candidates (heights, turntable angles, platform poses), judged from what a run
         has learnt: each view's camera where the calibrated rig puts it (`structure_T_camera`,
         e.g. the graph's current calibration), the tags where the graph estimates them
@@ -254,7 +257,9 @@ class SurveyPlanner:
         tag -> views taken that were expected to show it and did not; a candidate from nearly the
         same place (the same lift height, the turntable within `MISSED_TURN_RAD`) is not counted
         on to show it either (what hid it -- a strut, glare, an edge of the frame the prediction
-        puts just inside -- is likely to hide it again)."""
+        puts just inside -- is likely to hide it again).  `strut_tags`: tags for which a view
+        whose line of sight crosses a strut built so far (the design's, `STRUT_DIAMETER_M`) is not
+        counted on either."""
         import copy
 
         out = copy.copy(self)
@@ -263,6 +268,8 @@ class SurveyPlanner:
         out._camera_of = structure_T_camera
         out._tag_poses = dict(tag_poses)
         out._missed = {t: list(v) for t, v in (missed or {}).items() if v}
+        # the tags it is asked about are checked against the struts built so far, too
+        out._strut_tags = set(strut_tags or ())
         if K is not None:
             out.camera = replace(self.camera, K=np.asarray(K, float))
         out._geometry_cache, out._cover_cache, out._ok_cache = {}, {}, {}
@@ -598,7 +605,33 @@ class SurveyPlanner:
             out = {v: self.visible(v, present_idx) for v in views}
         if self._missed:
             out = {v: [t for t in seen if not self._missed_near(t, v)] for v, seen in out.items()}
+        if self._strut_tags:
+            segments = self._struts(placed_modules)
+            out = {v: [t for t in seen if t not in self._strut_tags or not self._behind_strut(t, v, segments)]
+                   for v, seen in out.items()}
         return out
+
+    def _struts(self, placed_modules: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """(S, 3) starts and ends of the struts the placed modules brought (the design's nodes)."""
+        edges = {e for name in placed_modules for e in self.model.module_by_name[name].edges}
+        if not edges:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        e = np.array(sorted(edges))
+        return self.model.nodes[e[:, 0]], self.model.nodes[e[:, 1]]
+
+    def _behind_strut(self, tag: int, view: View, segments: tuple[np.ndarray, np.ndarray]) -> bool:
+        """Whether a strut crosses the line of sight to the tag's face (a 3x3 grid of points over
+        its black square, corners included): a strut across a tag's code or border leaves nothing
+        the detector can decode."""
+        a, b = segments
+        if not len(a):
+            return False
+        cam = self.structure_T_camera(view).translation()
+        h = self.model.tags[tag].size_m / 2
+        grid = np.array([[x, y, 0.0] for x in (-h, 0.0, h) for y in (-h, 0.0, h)])
+        pose = self.structure_T_tag(tag)
+        pts = grid @ pose.rotation().matrix().T + pose.translation()          # (P, 3)
+        return bool(_segments_within(cam, pts, a, b, STRUT_DIAMETER_M / 2 + STRUT_MARGIN_M).any())
 
     def _missed_near(self, tag: int, view: View) -> bool:
         return any(abs(view.lift_m - m.lift_m) < self.config.lift_step_m / 2
@@ -691,6 +724,33 @@ class SurveyPlanner:
 
 
 MISSED_TURN_RAD = np.radians(10.0)    # a view this close in turntable angle to one that missed a tag
+STRUT_MARGIN_M = 0.005                # a line of sight this much clear of a strut's surface still counts as hidden
+
+
+def _segments_within(cam: np.ndarray, pts: np.ndarray, a: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:
+    """(P,) whether the sight line from `cam` to each of `pts` passes within `radius` of one of the
+    segments a[i]-b[i] (S, 3) strictly between the camera and the point (the closest approach of
+    two segments, clamped to both)."""
+    d1 = pts - cam                                    # (P, 3) sight lines
+    d2 = b - a                                        # (S, 3) struts
+    r = cam[None, :] - a                              # (S, 3)
+    aa = np.einsum("pi,pi->p", d1, d1)[:, None]       # (P, 1)
+    ee = np.einsum("si,si->s", d2, d2)[None, :]       # (1, S)
+    bb = d1 @ d2.T                                    # (P, S)
+    cc = (d1 @ r.T)                                   # (P, S): d1 . (cam - a)
+    ff = np.einsum("si,si->s", d2, r)[None, :]        # (1, S): d2 . (cam - a)
+    den = aa * ee - bb ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sc = np.where(den > 1e-12, (bb * ff - cc * ee) / den, 0.0)
+    sc = np.clip(sc, 0.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tc = np.clip((bb * sc + ff) / ee, 0.0, 1.0)
+    sc = np.clip(np.where(aa > 0, (bb * tc - cc) / aa, 0.0), 0.0, 1.0)
+    p = cam[None, None, :] + sc[..., None] * d1[:, None, :]
+    q = a[None, :, :] + tc[..., None] * d2[None, :, :]
+    dist = np.linalg.norm(p - q, axis=2)
+    # only what stands in front of the tag: not the strut the tag's own bracket sits on
+    return ((dist < radius) & (sc < 0.97)).any(axis=1)
 
 
 def _order(v: View) -> tuple:

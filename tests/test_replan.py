@@ -38,3 +38,23 @@ def test_a_planned_view_that_misses_is_re_planned_and_the_module_gets_a_verdict(
     assert "every tag of it measured" in r.reason
     # the module planned as usual is untouched by it
     assert "re-planned" not in proc.results["1P"].reason
+
+
+def test_a_strut_across_the_line_of_sight_hides_a_point_and_one_behind_it_does_not():
+    import numpy as np
+
+    from procedures.survey import _segments_within
+
+    cam = np.zeros(3)
+    pts = np.array([[0.0, 0.0, 2.0], [0.3, 0.0, 2.0]])
+    across = (np.array([[-1.0, 0.005, 1.0]]), np.array([[1.0, 0.005, 1.0]]))      # 5 mm off both sight lines' plane
+    assert _segments_within(cam, pts, *across, radius=0.015).tolist() == [True, True]
+    behind = (np.array([[-1.0, 0.0, 2.5]]), np.array([[1.0, 0.0, 2.5]]))
+    assert _segments_within(cam, pts, *behind, radius=0.015).tolist() == [False, False]
+    beside = (np.array([[0.1, -1.0, 1.0]]), np.array([[0.1, -0.05, 1.0]]))        # ends short of the lines
+    assert _segments_within(cam, pts, *beside, radius=0.015).tolist() == [False, False]
+    short = (np.array([[-1.0, 0.0, 1.0]]), np.array([[0.1, 0.0, 1.0]]))           # crosses only the first
+    assert _segments_within(cam, pts, *short, radius=0.015).tolist() == [True, False]
+    # the member a tag is mounted on, 2 cm behind its face, is not in front of it
+    mount = (np.array([[-1.0, 0.0, 2.02]]), np.array([[1.0, 0.0, 2.02]]))
+    assert _segments_within(cam, pts, *mount, radius=0.015).tolist() == [False, False]
