@@ -44,6 +44,7 @@ from procedures.survey import CameraModel, PrecisionTarget, SurveyPlan, SurveyPl
 
 ON_FLAG = ("stop", "continue", "retry")
 MAX_RETRIES = 2
+MAX_REPLANS = 2          # rounds of views re-planned for tags a step's views did not measure
 _STREAM_CAMERA = 8200    # simulated camera noise per step: [seed, _STREAM_CAMERA, step, attempt]
 IMAGE_FORMAT = "jpeg"    # logged images (detection runs on the lossless frame)
 
@@ -402,26 +403,51 @@ class BorgProcedure:
         borg.set_module_offset(name)
 
     def _survey_and_verify(self, spec: StepSpec, run: RunContext, name: str, attempt: int) -> Verdict:
-        """The planned views, then -- while the verdict is `uncertain` and the step's view budget
-        allows -- further rounds of views planned from the module's covariance in the graph.  The
-        last round's verdict, with what only the procedure knows, is the module's record."""
+        """The planned views, then -- while the step's view budget allows -- further rounds: views
+        re-planned from the calibrated rig and the graph's estimate of the structure when a tag of
+        the module that the views were planned to show was not measured (out of frame, hidden, too
+        oblique, unreadable), and views planned from the module's covariance in the graph while its
+        verdict is `uncertain`.  The last round's verdict, with what only the procedure knows
+        (and what the re-planning tried), is the module's record."""
         plan = self.surveys[name]
         taken: list[View] = []
+        replans: list[str] = []          # what each re-plan was for and what it tried
         rnd = 0
         while True:
             result = self._measure_round(spec, run, name, attempt, rnd, plan.views, len(taken))
             taken += plan.views
             budget = self.precision.max_views - len(taken)
+            missing = self._missing_tags(name, result, plan)
+            if missing and budget > 0 and len(replans) < MAX_REPLANS:
+                replan = self._replan(name, missing, taken, budget)
+                what = ", ".join(f"tag {t} seen in {self._sightings(name, t)} of {len(taken)} view(s)" for t in missing)
+                if replan.views:
+                    replans.append(f"{what}; {len(replan.views)} more planned from the calibrated rig and the "
+                                   f"estimated structure")
+                    console_of(run).line(f"{name}: {what}, fewer than planned; {len(replan.views)} more view(s), "
+                                         f"re-planned")
+                    plan = replan
+                    rnd += 1
+                    continue
+                replans.append(f"{what}, and no other reachable view is predicted to show it")
             if result.verdict != UNCERTAIN or budget <= 0:
                 break
             placed = self.measure.placed
-            plan = self.planner.more_views(name, placed, taken, self.measure.verdict_tag_covariance(name),
-                                           # past the plan's target: aim at what the band needs
-                                           self._round_target(result), budget)
+            # from the calibrated rig and the estimated structure, avoiding where its tags were missed
+            plan = self._adapted_planner(name).more_views(name, placed, taken,
+                                                          self.measure.verdict_tag_covariance(name),
+                                                          # past the plan's target: aim at what the band needs
+                                                          self._round_target(result), budget)
             if not plan.views:
                 break
             rnd += 1
             console_of(run).line(more_views_line(name, result.deviation_m, result.sigma_m, len(plan.views)))
+        if replans:
+            still = self._missing_tags(name, result, self.surveys[name])
+            outcome = (f"tag {', '.join(map(str, still))} still short of views" if still
+                       else "every tag of it measured")
+            note = f"re-planned: {'; '.join(replans)}; {outcome} after {len(taken)} view(s)"
+            result = replace(result, reason=f"{result.reason}; {note}" if result.reason else note)
         reason = result.reason
         if result.verdict == UNVERIFIED and name in self.unobservable:
             tags = ", ".join(map(str, self.unobservable[name]))
@@ -433,6 +459,74 @@ class BorgProcedure:
             result = replace(result, truth=self._truth_error(result), bound=self._bound(name))
         self.measure.finish(name)
         return result
+
+    def _missing_tags(self, name: str, result: Verdict, plan: SurveyPlan | None) -> list[int]:
+        """Tags of the module the step's views should have measured and did not: a tag the round's
+        views were planned to show (`plan`; None, or a verdict with no tag at all: every tag of it)
+        that is not in the graph's measurement of the module (never detected, or only too
+        obliquely to use), or that fewer of the step's views showed than the plan counted on and
+        than the coverage needs (`SurveyConfig.min_sightings`: one sighting leaves its depth to
+        one view).  A tag rejected as displaced is measured: another view would not move it."""
+        tags = self.model.module_by_name[name].tags
+        expected = set(tags) if plan is None or result.verdict == UNVERIFIED else \
+            {t for seen in plan.expected for t in seen}
+        need = self.planner.config.min_sightings
+        out = []
+        for t in tags:
+            if t not in expected or t in self.measure.rejected_tags:
+                continue
+            planned = sum(t in seen for seen in plan.expected) if plan is not None else need
+            if t not in result.tags_seen or self._sightings(name, t) < min(planned, need):
+                out.append(t)
+        return out
+
+    def _sightings(self, name: str, tag: int) -> int:
+        """How many of this step's views (every round) detected `tag`."""
+        return sum(any(d["id"] == tag for d in v["detections"]) for v in self._step_views(name))
+
+    def _step_views(self, name: str) -> list[dict[str, Any]]:
+        """The views of this step's current attempt, every round."""
+        views: list[dict[str, Any]] = []
+        for v in reversed(self.views_done):
+            if v["module"] != name or (views and v["attempt"] != views[0]["attempt"]):
+                break
+            views.append(v)
+        return views[::-1]
+
+    def _adapted_planner(self, name: str):
+        """The planner's candidates judged from what the run has learnt -- each view's camera where
+        the graph's current calibration of the rig puts it (turntable axis, Stewart base, lift,
+        camera mount), the calibrated intrinsics, every tag the graph has estimated where it
+        estimates it (so the structure as built hides what it really hides), the rest where the
+        design has them -- and not counting on a view near one that missed a tag of the module."""
+        from estimation.rig_model import ViewMotion
+
+        slam = self.measure.slam
+        if slam.rig is not None:
+            def camera(view: View):
+                return slam.predicted_camera(ViewMotion(view.turntable_rad, view.stewart_pose, view.lift_m))
+        else:
+            camera = self.planner.structure_T_camera
+        tags = self.model.module_by_name[name].tags
+        missed: dict[int, list[View]] = {}
+        for v in self._step_views(name):
+            seen = {d["id"] for d in v["detections"]}
+            view = View(float(v["turntable_rad"]), tuple(float(x) for x in v["stewart_pose"]), float(v["lift_m"]))
+            for t in tags:
+                if t not in seen:
+                    missed.setdefault(t, []).append(view)
+        return self.planner.adapted(camera, slam.tag_estimates(), self.measure.detector_camera[0], missed,
+                                    strut_tags=tags)
+
+    def _replan(self, name: str, missing: list[int], taken: list[View], budget: int) -> SurveyPlan:
+        """Views for `missing` tags, none of `taken`, at most `budget`, from the adapted planner:
+        the coverage pass for them, then the accuracy pass from what the graph knows of the module."""
+        cov = self.measure.verdict_tag_covariance(name)
+        info = None
+        if cov is not None and self.measure.verdict_tags(name)[:1] == self.model.module_by_name[name].tags[:1]:
+            info = np.linalg.inv(cov)
+        return self._adapted_planner(name).plan(name, self.measure.placed, replace(self.precision, max_views=budget),
+                                                exclude=taken, want=missing, info=info, fallback=False)
 
     def _bound(self, name: str) -> Bound | None:
         """Simulation: the best 1-sigma any estimator could give this module from the same views --

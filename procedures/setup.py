@@ -156,6 +156,8 @@ def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *,
     check_speedup(speedup, rig if (rig.sim is not None if simulate is None else simulate) else None)
     if scenario_path is None and rig.sim is not None:
         scenario = Scenario(seed=rig.sim.seed)
+    # the Stewart base stands at the station that clears this BORG's turntable (docs/hardware.md)
+    rig = rig.for_borg(borg_n if borg_n is not None else rig.sim.borg_n if rig.sim is not None else 3)
     bench = Bench(rig, scenario)
     use_sim = rig.sim is not None if simulate is None else simulate
     if use_sim:

@@ -21,7 +21,7 @@ step's `unobservable`, before anything moves.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Callable, Iterable, Sequence
 
@@ -29,6 +29,7 @@ import numpy as np
 
 from estimation.fiducials import tag_object_points
 from estimation.precision import covariance_from_information, module_sigma, view_information
+from estimation.semantics import STRUT_END_DIAMETER_M as STRUT_DIAMETER_M
 from lab.core.geometry import Pose3, Rot3, from_xyzrpy
 from lab.core.structures.borg import BorgModel
 from lab.core.survey_budget import MAX_VIEWS, SIGMA_TARGET_MM
@@ -167,6 +168,13 @@ class SurveyPlanner:
         self._ids = np.array(ids)
         self._index = {t: i for i, t in enumerate(ids)}
         self._geometry_cache: dict[View, _ViewGeometry] = {}
+        self._camera_of: Callable[[View], Pose3] | None = None    # an adapted planner's camera poses
+        self._tag_poses: dict[int, Pose3] = {}                     # ... and tag poses (else the design)
+        self._missed: dict[int, list[View]] = {}                   # ... and where tags were not seen
+        self._strut_tags: set[int] = set()                         # ... and which to check against struts
+        self._facing_cache: dict[int, list[View]] = {}
+        self._cover_cache: dict[View, np.ndarray] = {}
+        self._ok_cache: dict[int, tuple[Sequence[View], np.ndarray]] = {}
         self._reachable = reachable
         self._turntable_limits = turntable_limits_rad
         c = self.config
@@ -220,17 +228,53 @@ class SurveyPlanner:
             t = self.model.tags[int(tid)]
             h = t.size_m / 2
             local = np.array([[-h, -h, 0, 1], [h, -h, 0, 1], [h, h, 0, 1], [-h, h, 0, 1]])
-            out[i] = (t.structure_T_tag.matrix() @ local.T).T[:, :3]
+            out[i] = (self.structure_T_tag(int(tid)).matrix() @ local.T).T[:, :3]
         return out
 
     @cached_property
     def _tag_frames(self) -> tuple[np.ndarray, np.ndarray]:
         """(T, 3) centres and (T, 3) normals in the structure frame."""
-        poses = [self.model.tags[int(t)].structure_T_tag for t in self._ids]
+        poses = [self.structure_T_tag(int(t)) for t in self._ids]
         return (np.array([p.translation() for p in poses]), np.array([p.rotation().matrix()[:, 2] for p in poses]))
 
     def structure_T_camera(self, view: View) -> Pose3:
+        if self._camera_of is not None:
+            return self._camera_of(view)
         return self.model.world_T_structure(view.turntable_rad).inverse().compose(self.camera.world_T_camera(view))
+
+    def structure_T_tag(self, tag: int) -> Pose3:
+        """Where the planner expects the tag: the design's pose, or (an adapted planner) the
+        estimate it was given."""
+        pose = self._tag_poses.get(tag)
+        return pose if pose is not None else self.model.tags[tag].structure_T_tag
+
+    def adapted(self, structure_T_camera: Callable[[View], Pose3], tag_poses: dict[int, Pose3],
+                K: np.ndarray | None = None, missed: dict[int, list[View]] | None = None,
+                strut_tags: Iterable[int] = ()) -> "SurveyPlanner":
+        """The same candidates (heights, turntable angles, platform poses), judged from what a run
+        has learnt: each view's camera where the calibrated rig puts it (`structure_T_camera`,
+        e.g. the graph's current calibration), the tags where the graph estimates them
+        (`tag_poses`; the design for the others) and the calibrated intrinsics `K`.  `missed`:
+        tag -> views taken that were expected to show it and did not; a candidate from nearly the
+        same place (the same lift height, the turntable within `MISSED_TURN_RAD`) is not counted
+        on to show it either (what hid it -- a strut, glare, an edge of the frame the prediction
+        puts just inside -- is likely to hide it again).  `strut_tags`: tags for which a view
+        whose line of sight crosses a strut built so far (the design's, `STRUT_DIAMETER_M`) is not
+        counted on either."""
+        import copy
+
+        out = copy.copy(self)
+        for name in ("_tag_corners", "_tag_frames"):
+            out.__dict__.pop(name, None)
+        out._camera_of = structure_T_camera
+        out._tag_poses = dict(tag_poses)
+        out._missed = {t: list(v) for t, v in (missed or {}).items() if v}
+        # the tags it is asked about are checked against the struts built so far, too
+        out._strut_tags = set(strut_tags or ())
+        if K is not None:
+            out.camera = replace(self.camera, K=np.asarray(K, float))
+        out._geometry_cache, out._cover_cache, out._ok_cache = {}, {}, {}
+        return out
 
     def _geometry(self, view: View) -> _ViewGeometry:
         g = self._geometry_cache.get(view)
@@ -243,25 +287,38 @@ class SurveyPlanner:
         to_cam = s_T_c.translation() - centres
         dist = np.linalg.norm(to_cam, axis=1)
         facing = (dist <= c.max_distance_m) & (np.einsum("ij,ij->i", normals, to_cam) / dist >= np.cos(c.max_view_angle_rad))
-        pc = self._tag_corners @ c_T_s[:3, :3].T + c_T_s[:3, 3]
+        # only the tags facing the camera can be read: project those (the others' rows stay NaN)
+        f = np.flatnonzero(facing)
+        pc = self._tag_corners[f] @ c_T_s[:3, :3].T + c_T_s[:3, 3]
         front = np.all(pc[:, :, 2] >= 0.1, axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = (pc / pc[:, :, 2:3]) @ self.camera.K.T
         uv = uv[:, :, :2]
-        lo, hi = uv.min(axis=1), uv.max(axis=1)
-        inside = ((lo[:, 0] >= c.margin_px) & (lo[:, 1] >= c.margin_px)
-                  & (hi[:, 0] <= self.camera.width_px - c.margin_px) & (hi[:, 1] <= self.camera.height_px - c.margin_px))
+        lo_f, hi_f = uv.min(axis=1), uv.max(axis=1)
+        inside = ((lo_f[:, 0] >= c.margin_px) & (lo_f[:, 1] >= c.margin_px)
+                  & (hi_f[:, 0] <= self.camera.width_px - c.margin_px)
+                  & (hi_f[:, 1] <= self.camera.height_px - c.margin_px))
         sides = np.linalg.norm(np.roll(uv, -1, axis=1) - uv, axis=2).min(axis=1)
-        ok = facing & front & inside & (sides >= c.min_side_px)
-        g = _ViewGeometry(ok, pc[:, :, 2].mean(axis=1), lo, hi)
+        ok = np.zeros(len(facing), bool)
+        ok[f] = front & inside & (sides >= c.min_side_px)
+        depth = np.full(len(facing), np.nan)
+        depth[f] = pc[:, :, 2].mean(axis=1)
+        lo, hi = np.full((len(facing), 2), np.nan), np.full((len(facing), 2), np.nan)
+        lo[f], hi[f] = lo_f, hi_f
+        g = _ViewGeometry(ok, depth, lo, hi)
         self._geometry_cache[view] = g
         return g
 
-    def visible(self, view: View, present: Iterable[int], among: Iterable[int] | None = None) -> list[int]:
+    def present_index(self, present: Iterable[int]) -> np.ndarray:
+        """`present` (tag ids) as sorted indices into the planner's tag table, for `visible`."""
+        return np.array(sorted(self._index[t] for t in present), dtype=int)
+
+    def visible(self, view: View, present: Iterable[int] | np.ndarray, among: Iterable[int] | None = None) -> list[int]:
         """Tags of `present` predicted readable in `view`, nearest first (only those of `among`,
-        if given: the others still hide what is behind them)."""
+        if given: the others still hide what is behind them).  `present` may be tag ids or, for a
+        caller asking about many views, `present_index(ids)` once."""
         g = self._geometry(view)
-        idx = np.array([self._index[t] for t in present], dtype=int)
+        idx = present if isinstance(present, np.ndarray) else np.array([self._index[t] for t in present], dtype=int)
         idx = idx[g.ok[idx]] if len(idx) else idx
         if not len(idx):
             return []
@@ -276,6 +333,84 @@ class SurveyPlanner:
                 return []
         keep = unoccluded(g.lo[idx], g.hi[idx], rows, self.config.occlusion_overlap)
         return [int(t) for t in self._ids[idx[rows[keep]]]]
+
+    def _ok(self, views: Sequence[View]) -> np.ndarray:
+        """(V, T): which tags each of `views` could read on its own (before occlusion)."""
+        if not views:
+            return np.zeros((0, len(self._ids)), bool)
+        return np.stack([self._geometry(v).ok for v in views])
+
+    def _seeing(self, views: Sequence[View], tags: Iterable[int], ok: np.ndarray | None = None) -> list[View]:
+        """Those of `views` in which at least one of `tags` could be read (the others cannot see
+        them whatever is in front: the only ones worth the occlusion test)."""
+        idx = [self._index[t] for t in tags]
+        if ok is None:
+            # the candidates facing one face are asked about at every step: their table is kept
+            key = id(views)
+            hit = self._ok_cache.get(key)
+            if hit is None or hit[0] is not views:
+                hit = (views, self._ok(views))
+                if any(views is f for f in self._facing_cache.values()):
+                    self._ok_cache[key] = hit
+            ok = hit[1]
+        return [views[i] for i in np.flatnonzero(ok[:, idx].any(axis=1))] if idx else []
+
+    @cached_property
+    def _step_of(self) -> np.ndarray:
+        """(T,): the assembly step at which each tag appears (0: the turntable's, k: the k-th module's)."""
+        out = np.zeros(len(self._ids), int)
+        for k, m in enumerate(self.model.modules, start=1):
+            out[[self._index[t] for t in m.tags]] = k
+        return out
+
+    @cached_property
+    def _tag_face(self) -> np.ndarray:
+        """(T,): the face whose views may see each tag (its module's; 0: any, the turntable's)."""
+        out = np.zeros(len(self._ids), int)
+        for m in self.model.modules:
+            out[[self._index[t] for t in m.tags]] = self._face_of(m.name)
+        return out
+
+    def _cover(self, view: View) -> np.ndarray:
+        """(T,): for each tag `view` could read, the first assembly step at which a nearer readable
+        tag covers it (`visible`'s occlusion rule), a step past the last where none does.  With it
+        a view's visible tags at any step of the assembly order are one comparison: readable, placed
+        (`_step_of` <= step) and not yet covered (`_cover` > step)."""
+        c = self._cover_cache.get(view)
+        if c is not None:
+            return c
+        g = self._geometry(view)
+        never = len(self.model.modules) + 1
+        c = np.full(len(self._ids), never, int)
+        idx = np.flatnonzero(g.ok)
+        if len(idx):
+            idx = idx[np.lexsort((self._ids[idx], g.depth[idx]))]        # nearest first, as `visible`
+            lo, hi = g.lo[idx], g.hi[idx]
+            area = np.prod(hi - lo, axis=1)
+            inter = np.prod(np.clip(np.minimum(hi[:, None], hi[None]) - np.maximum(lo[:, None], lo[None]), 0, None),
+                            axis=2)
+            covers = (inter > self.config.occlusion_overlap * area[:, None]) & np.tri(len(idx), k=-1, dtype=bool)
+            steps = np.where(covers, self._step_of[idx][None, :], never)
+            c[idx] = steps.min(axis=1)
+        self._cover_cache[view] = c
+        return c
+
+    def _visible_at(self, view: View, step: int) -> list[int]:
+        """`visible(view, present)` for the tags present at assembly step `step` (the turntable's
+        and the first `step` modules'), from `_cover`: the same tags, nearest first."""
+        g = self._geometry(view)
+        idx = np.flatnonzero(g.ok & (self._step_of <= step) & (self._cover(view) > step))
+        idx = idx[np.lexsort((self._ids[idx], g.depth[idx]))]
+        return [int(t) for t in self._ids[idx]]
+
+    def _step_of_placed(self, placed_modules: Sequence[str]) -> int | None:
+        """The assembly step `placed_modules` stands for, if it is the assembly order's first
+        modules (a run's steps); None otherwise."""
+        k = len(placed_modules)
+        order = self.model.modules
+        if k <= len(order) and all(order[i].name == n for i, n in enumerate(placed_modules)):
+            return k
+        return None
 
     # ---- which views: heights and wider looks ------------------------------------------------------
     def _choose_view_sets(self) -> tuple[tuple[float, bool], ...]:
@@ -314,14 +449,17 @@ class SurveyPlanner:
             if group not in cache:
                 h, wide = group
                 views = [self._at(v, h) for v in (self._wide if wide else self._standard)]
+                # each view: which tags it reads at their own step (nothing placed later in front)
+                own = np.stack([self._geometry(v).ok & (self._cover(v) > self._step_of) for v in views])
+                facing = np.stack([self._facing_mask(f, views) for f in range(5)])
+                angles_of = np.array([v.turntable_rad for v in views])
                 out: dict[int, list[float]] = {}
-                for name, tags, placed in steps:
-                    idx = [self._index[t] for t in tags]
-                    for v in (self._facing(name, views) if name else views):
-                        if not self._geometry(v).ok[idx].any():
-                            continue
-                        for t in self.visible(v, placed, among=tags):
-                            out.setdefault(t, []).append(v.turntable_rad)
+                for _, tags, _ in steps:
+                    for t in tags:
+                        i = self._index[t]
+                        seen = np.flatnonzero(own[:, i] & facing[self._tag_face[i]])
+                        if len(seen):
+                            out[t] = [float(a) for a in angles_of[seen]]
                 cache[group] = out
             return cache[group]
 
@@ -368,15 +506,26 @@ class SurveyPlanner:
         grow(seen_once)
         return tuple(chosen)
 
-    def plan(self, module: str, placed_modules: Sequence[str], precision: PrecisionTarget | None = None) -> SurveyPlan:
-        """Views for the step that placed `module`; `placed_modules` includes it."""
+    def plan(self, module: str, placed_modules: Sequence[str], precision: PrecisionTarget | None = None, *,
+             exclude: Iterable[View] = (), info: np.ndarray | None = None, fallback: bool = True,
+             want: Iterable[int] | None = None) -> SurveyPlan:
+        """Views for the step that placed `module`; `placed_modules` includes it.  `exclude`: views
+        not to use (a re-plan's: those already taken); `info`: what is already known of the
+        module's verdict tag (information, 6x6) for the accuracy pass; `fallback`: with no view
+        predicted to see the module, still look from its face (a re-plan returns no view);
+        `want`: the module's tags the coverage pass is for (default all of them)."""
         model = self.model
         present = set(model.turntable.tag_ids)
         for name in placed_modules:
             present.update(model.module_by_name[name].tags)
         new = list(model.module_by_name[module].tags)
+        if want is not None:
+            new = [t for t in new if t in set(want)]
         related = {t: [r for r in _related(model, t) if r in present and r not in new] for t in new}
-        sight = {v: self.visible(v, present) for v in self._facing(module)}
+        # only views that can read one of the new tags can gain anything (coverage or accuracy)
+        excluded = set(exclude)
+        sight = self._sight(module, placed_modules, present,
+                            [v for v in self._seeing(self._facing(module), new) if v not in excluded])
         # requirements: each new tag seen min_sightings times; each new tag seen with a related tag;
         # the new module's tags seen together (deployables: B and T in one view)
         need_count = {t: self.config.min_sightings for t in new}
@@ -391,7 +540,7 @@ class SurveyPlanner:
                                        for a in seen_from[t])
 
         for distinct in (True, False):
-            while len(chosen) < self.config.views_per_step:
+            while len(chosen) < min(self.config.views_per_step, precision.max_views if precision else np.inf):
                 def score(v: View) -> tuple[float, float]:
                     s = set(sight[v])
                     gain = sum(1.0 for t in new if need_count[t] > 0 and t in s and fresh(t, v, distinct))
@@ -414,14 +563,15 @@ class SurveyPlanner:
                 if need_together and all(t in s for t in new):
                     need_together = False
                 chosen.append(best)
-        if not chosen:  # nothing sees the new tags: still look, from the face the module is on
+        if not chosen and fallback:  # nothing sees the new tags: still look, from the face the module is on
             face = model.module_by_name[module].face
             chosen = [min(self.candidates, key=lambda v: (abs(v.turntable_rad - (face - 1) * np.pi / 2),
                                                           np.abs(v.stewart_pose).sum(), abs(v.lift_m)))]
         predicted = None
         if precision is not None:
+            known = self._information(module, chosen, sight, precision)
             extra, predicted = self._accurate(module, [v for v in sight if v not in chosen], sight, precision,
-                                              self._information(module, chosen, sight, precision),
+                                              known if info is None else known + info,
                                               precision.max_views - len(chosen))
             chosen += extra
         chosen.sort(key=_order)
@@ -436,22 +586,82 @@ class SurveyPlanner:
         present = set(self.model.turntable.tag_ids)
         for name in placed_modules:
             present.update(self.model.module_by_name[name].tags)
-        sight = {v: self.visible(v, present) for v in self._facing(module) if v not in taken}
+        taken_set = set(taken)
+        sight = self._sight(module, placed_modules, present,
+                            [v for v in self._seeing(self._facing(module), self.model.module_by_name[module].tags)
+                             if v not in taken_set])
         info = np.zeros((6, 6)) if tag_covariance is None else np.linalg.inv(tag_covariance)
         views, predicted = self._accurate(module, list(sight), sight, precision, info, budget)
         views.sort(key=_order)
         return SurveyPlan(module, views, [sight[v] for v in views], [], predicted)
 
+    def _sight(self, module: str, placed_modules: Sequence[str], present: set[int],
+               views: Sequence[View]) -> dict[View, list[int]]:
+        """View -> the present tags it is predicted to read, for `views`."""
+        step = self._step_of_placed(placed_modules)
+        if step is not None:
+            out = {v: self._visible_at(v, step) for v in views}
+        else:
+            present_idx = self.present_index(present)
+            out = {v: self.visible(v, present_idx) for v in views}
+        if self._missed:
+            out = {v: [t for t in seen if not self._missed_near(t, v)] for v, seen in out.items()}
+        if self._strut_tags:
+            segments = self._struts(placed_modules)
+            out = {v: [t for t in seen if t not in self._strut_tags or not self._behind_strut(t, v, segments)]
+                   for v, seen in out.items()}
+        return out
+
+    def _struts(self, placed_modules: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """(S, 3) starts and ends of the struts the placed modules brought (the design's nodes)."""
+        edges = {e for name in placed_modules for e in self.model.module_by_name[name].edges}
+        if not edges:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        e = np.array(sorted(edges))
+        return self.model.nodes[e[:, 0]], self.model.nodes[e[:, 1]]
+
+    def _behind_strut(self, tag: int, view: View, segments: tuple[np.ndarray, np.ndarray]) -> bool:
+        """Whether a strut crosses the line of sight to the tag's face (a 3x3 grid of points over
+        its black square, corners included): a strut across a tag's code or border leaves nothing
+        the detector can decode."""
+        a, b = segments
+        if not len(a):
+            return False
+        cam = self.structure_T_camera(view).translation()
+        h = self.model.tags[tag].size_m / 2
+        grid = np.array([[x, y, 0.0] for x in (-h, 0.0, h) for y in (-h, 0.0, h)])
+        pose = self.structure_T_tag(tag)
+        pts = grid @ pose.rotation().matrix().T + pose.translation()          # (P, 3)
+        return bool(_segments_within(cam, pts, a, b, STRUT_DIAMETER_M / 2 + STRUT_MARGIN_M).any())
+
+    def _missed_near(self, tag: int, view: View) -> bool:
+        return any(abs(view.lift_m - m.lift_m) < self.config.lift_step_m / 2
+                   and abs((view.turntable_rad - m.turntable_rad + np.pi) % (2 * np.pi) - np.pi) < MISSED_TURN_RAD
+                   for m in self._missed.get(tag, ()))
+
     # ---- accuracy ------------------------------------------------------------------------------
     def _facing(self, module: str, candidates: Sequence[View] | None = None) -> list[View]:
         """Candidates that can see the module's face at all (the others only cost time to check)."""
         candidates = self.candidates if candidates is None else candidates
+        if candidates is self.candidates:
+            face = self._face_of(module)
+            if face not in self._facing_cache:
+                self._facing_cache[face] = [v for v, f in zip(candidates, self._facing_mask(face, candidates)) if f]
+            return self._facing_cache[face]
+        return [v for v, f in zip(candidates, self._facing_mask(self._face_of(module), candidates)) if f]
+
+    def _face_of(self, module: str) -> int:
         face = self.model.module_by_name[module].face
+        return face if 1 <= face <= 4 else 0
+
+    @staticmethod
+    def _facing_mask(face: int, views: Sequence[View]) -> np.ndarray:
+        """Which of `views` turn face `face` (1..4; 0: any) toward the camera, within 70 degrees."""
         if not 1 <= face <= 4:
-            return list(candidates)
+            return np.ones(len(views), bool)
         centre = (face - 1) * np.pi / 2
-        return [v for v in candidates
-                if abs((v.turntable_rad - centre + np.pi) % (2 * np.pi) - np.pi) <= np.radians(70.0)]
+        a = np.array([v.turntable_rad for v in views], float)
+        return np.abs((a - centre + np.pi) % (2 * np.pi) - np.pi) <= np.radians(70.0)
 
     def _verdict_tag(self, module: str) -> int:
         return self.model.module_by_name[module].tags[0]
@@ -462,7 +672,7 @@ class SurveyPlanner:
         if tag not in sight.get(view, ()):
             return np.zeros((6, 6))
         spec = self.model.tags[tag]
-        return view_information(self.structure_T_camera(view), spec.structure_T_tag, self.camera.K,
+        return view_information(self.structure_T_camera(view), self.structure_T_tag(tag), self.camera.K,
                                 tag_object_points(spec.size_m), precision.corner_sigma_px,
                                 precision.camera_covariance)
 
@@ -479,6 +689,23 @@ class SurveyPlanner:
         tag_T_module = self.model.tags[tag].structure_T_tag.inverse().compose(m.structure_T_module)
         return module_sigma(tag_T_module, cov).position_m
 
+    def _predicted_sigmas(self, module: str, infos: np.ndarray) -> np.ndarray:
+        """`predicted_sigma` of each of a stack of information matrices (C, 6, 6), in one pass:
+        the same arithmetic (estimation.precision's covariance_from_information, module_sigma)."""
+        info = 0.5 * (infos + np.swapaxes(infos, 1, 2))
+        w = np.linalg.eigvalsh(info)
+        observed = w.min(axis=1) > 1e-9 * np.maximum(w.max(axis=1), 1e-30)
+        cov = np.linalg.inv(np.where(observed[:, None, None], info, np.eye(6)))
+        cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+        tag = self._verdict_tag(module)
+        m = self.model.module_by_name[module]
+        lever = self.model.tags[tag].structure_T_tag.inverse().compose(m.structure_T_module).translation()
+        J = np.hstack([-np.array([[0.0, -lever[2], lever[1]], [lever[2], 0.0, -lever[0]], [-lever[1], lever[0], 0.0]]),
+                       np.eye(3)])
+        pos = J @ cov @ J.T
+        out = np.sqrt(np.maximum(np.linalg.eigvalsh(pos).max(axis=1), 0.0))
+        return np.where(observed, out, np.inf)
+
     def _accurate(self, module: str, candidates: list[View], sight: dict[View, list[int]],
                   precision: PrecisionTarget, info: np.ndarray, budget: int) -> tuple[list[View], float]:
         """Greedy: the view that shrinks the predicted sigma most, until the target or the budget."""
@@ -487,11 +714,44 @@ class SurveyPlanner:
         chosen: list[View] = []
         sigma = self.predicted_sigma(module, info)
         while sigma > precision.sigma_m and len(chosen) < budget and gains:
-            best = min(gains, key=lambda v: (self.predicted_sigma(module, info + gains[v]), abs(v.turntable_rad)))
+            views = list(gains)
+            sigmas = self._predicted_sigmas(module, info + np.stack([gains[v] for v in views]))
+            best = min(range(len(views)), key=lambda i: (sigmas[i], abs(views[i].turntable_rad)))
+            best = views[best]
             info = info + gains.pop(best)
             chosen.append(best)
             sigma = self.predicted_sigma(module, info)
         return chosen, sigma
+
+
+MISSED_TURN_RAD = np.radians(10.0)    # a view this close in turntable angle to one that missed a tag
+STRUT_MARGIN_M = 0.005                # a line of sight this much clear of a strut's surface still counts as hidden
+
+
+def _segments_within(cam: np.ndarray, pts: np.ndarray, a: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:
+    """(P,) whether the sight line from `cam` to each of `pts` passes within `radius` of one of the
+    segments a[i]-b[i] (S, 3) strictly between the camera and the point (the closest approach of
+    two segments, clamped to both)."""
+    d1 = pts - cam                                    # (P, 3) sight lines
+    d2 = b - a                                        # (S, 3) struts
+    r = cam[None, :] - a                              # (S, 3)
+    aa = np.einsum("pi,pi->p", d1, d1)[:, None]       # (P, 1)
+    ee = np.einsum("si,si->s", d2, d2)[None, :]       # (1, S)
+    bb = d1 @ d2.T                                    # (P, S)
+    cc = (d1 @ r.T)                                   # (P, S): d1 . (cam - a)
+    ff = np.einsum("si,si->s", d2, r)[None, :]        # (1, S): d2 . (cam - a)
+    den = aa * ee - bb ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sc = np.where(den > 1e-12, (bb * ff - cc * ee) / den, 0.0)
+    sc = np.clip(sc, 0.0, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tc = np.clip((bb * sc + ff) / ee, 0.0, 1.0)
+    sc = np.clip(np.where(aa > 0, (bb * tc - cc) / aa, 0.0), 0.0, 1.0)
+    p = cam[None, None, :] + sc[..., None] * d1[:, None, :]
+    q = a[None, :, :] + tc[..., None] * d2[None, :, :]
+    dist = np.linalg.norm(p - q, axis=2)
+    # only what stands in front of the tag: not the strut the tag's own bracket sits on
+    return ((dist < radius) & (sc < 0.97)).any(axis=1)
 
 
 def _order(v: View) -> tuple:

@@ -115,8 +115,12 @@ def start_sim_bench(rig: Rig | None = None, scenario: Scenario | None = None, *,
     pty: also serve each serial device on a pseudo-terminal.  place_all: start with every BORG
     module placed (lab sim), instead of an empty turntable (a procedure places them).  borg_n: the
     size of the BORG on the turntable (default: the rig's [sim] borg_n).  firmware: what the
-    devices do when their host goes (default: the rig's [sim] watchdog_s and stop_on_link_loss)."""
+    devices do when their host goes (default: the rig's [sim] watchdog_s and stop_on_link_loss).
+    The Stewart base stands at the rig's station for that BORG (`Rig.for_borg`: the near one
+    unless the turntable is too wide for it), truly and as the software is told."""
     rig = rig or load_rig(None)
+    if rig.sim is not None:
+        rig = rig.for_borg(rig.sim.borg_n if borg_n is None else borg_n)
     world = SimWorld(rig, scenario, speedup=speedup, borg_n=borg_n)
     bench = SimBench(rig, world)
     sim = rig.sim

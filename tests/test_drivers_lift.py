@@ -19,7 +19,7 @@ from lab.core.scenario import Scenario
 from sim_devices.bench import start_sim_bench
 
 RIG = load_rig()
-LIMITS = b"OK min_mm=-600.000 max_mm=2600.000 speed_mm_s=1000.000 settle_s=0.000\n"
+LIMITS = b"OK min_mm=-600.000 max_mm=4600.000 speed_mm_s=1000.000 settle_s=0.000\n"
 # the bench (tests/conftest.py) also serves each serial device on a pty: the driver over a real tty
 pytestmark = pytest.mark.sim_bench(pty=True)
 
@@ -47,11 +47,11 @@ def test_out_of_range_heights_never_reach_the_wire():
     with ScriptedLineDevice([]) as dev:                   # any byte sent would fail the script
         comms = MemoryComms()
         lift = lift_on(dev.url, comms)
-        for bad in (-0.6, 2.51, float("nan"), float("inf")):
-            with pytest.raises(OutOfRange, match=r"lift height .* outside the limits \[-0.5, 2.5\] m .*nothing was sent"):
+        for bad in (-0.6, 4.51, float("nan"), float("inf")):
+            with pytest.raises(OutOfRange, match=r"lift height .* outside the limits \[-0.5, 4.5\] m .*nothing was sent"):
                 lift.move_to(bad)
         assert not [r for r in comms.records if r.direction == "tx"] and not lift.moved
-        lift.check_height(2.5)
+        lift.check_height(4.5)
 
 
 def test_an_err_reply_is_a_typed_fault_and_nothing_more_is_sent():
@@ -105,17 +105,17 @@ def test_an_ideal_lift_moves_the_base_straight_up():
 
 
 def test_rig_limits_wider_than_the_hardware_are_a_rig_mismatch(bench):
-    cfg = dataclasses.replace(bench.rig.lift, max_m=3.0)
+    cfg = dataclasses.replace(bench.rig.lift, max_m=5.0)
     lift = Lift.open(cfg)
-    with pytest.raises(RigMismatch, match=r"rig limits \[-500, 3000\] mm exceed the hardware travel \[-600, 2600\] mm"):
+    with pytest.raises(RigMismatch, match=r"rig limits \[-500, 5000\] mm exceed the hardware travel \[-600, 4600\] mm"):
         lift.move_to(0.1)
     lift.close()
 
 
 def test_the_device_refuses_out_of_travel_and_busy_moves(bench):
     lift = Lift.open(bench.rig.lift)
-    with pytest.raises(DeviceFault, match=r"height 2700.000 mm outside \[-600.000, 2600.000\] mm") as err:
-        lift.link.request("MOVE 2700", idempotent=False)
+    with pytest.raises(DeviceFault, match=r"height 4700.000 mm outside \[-600.000, 4600.000\] mm") as err:
+        lift.link.request("MOVE 4700", idempotent=False)
     assert err.value.code == 20
     lift.close()
     with start_sim_bench(fast_sim_rig(), speedup=5) as slow:

@@ -23,7 +23,7 @@ def test_default_rig_is_the_simulated_bench():
     kinds = {name: kind for name, kind, _ in rig.devices()}
     assert kinds == {"turntable": "turntable", "stewart": "stewart", "lift": "lift", "camera": "camera",
                      "ipjr1": "ipjr", "ipjr2": "ipjr", "ipjr3": "ipjr"}
-    assert (rig.lift.min_m, rig.lift.max_m) == (-0.5, 2.5)
+    assert (rig.lift.min_m, rig.lift.max_m) == (-0.5, 4.5)
     assert rig.turntable.min_rad == pytest.approx(math.radians(-90))
     assert rig.ipjrs["ipjr1"].step_m == pytest.approx(0.138e-3)        # the paper's d_step
     assert rig.ipjrs["ipjr1"].tolerance_m == pytest.approx(0.5e-3)     # the paper's 0.5 mm

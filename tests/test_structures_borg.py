@@ -117,9 +117,9 @@ def test_turntable_turns_faces_to_the_camera():
 
 
 def test_bad_n_is_refused():
-    with pytest.raises(ValueError, match="N must be an integer from 2 to 8"):
+    with pytest.raises(ValueError, match="N must be an integer from 2 to 10"):
         build_borg(1)
-    with pytest.raises(ValueError, match="N must be an integer from 2 to 8"):
+    with pytest.raises(ValueError, match="N must be an integer from 2 to 10"):
         build_borg(100)      # a size no turntable carries: refused, not built for minutes
 
 

@@ -20,6 +20,8 @@ BENCHES: dict[str, tuple[str, str]] = {
                                                    "without rig calibration"),
     "trust": ("lab.studies.bench_trust", "verdicts, accuracy and honest 1-sigma against rig-error size and "
                                              "camera quality"),
+    "layers": ("lab.studies.bench_layers", "every BORG module verified, layer by layer, at N = 3..10: faults in every "
+                                           "layer, unverified, false flags, error against truth and 1-sigma, cost"),
     "faults": ("lab.studies.bench_faults", "the fault campaign: device faults, kills, signals, bad input, abuse"),
 }
 

@@ -21,7 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--on-flag", choices=("stop", "continue", "retry"), default="stop",
                    help="when a module is flagged: stop the run (default), continue, or ask for a re-deploy and re-measure")
     b.add_argument("--n", type=int, default=None,
-                   help="BORG size, 2..8 (default: the rig's [sim] borg_n, else 3); a simulated rig simulates this size")
+                   help="BORG size, 2..10 (default: the rig's [sim] borg_n, else 3); a simulated rig simulates this size")
     b.add_argument("--modules", type=int, default=None, metavar="K",
                    help="assemble only the first K modules (a short run)")
     b.add_argument("--calibration", metavar="FILE",

@@ -24,6 +24,7 @@ from lab.core.errors import UserError
 from lab.core.geometry import Pose3, from_xyzrpy
 from lab.core import rig_error as rig_errors   # the record is RigError too, like this module's exception
 from lab.core.imaging import RIG_CAMERA_KEYS, Imaging, parse_imaging
+from lab.core.structures.borg import MAX_N
 from lab.core.survey_budget import MAX_VIEWS, MAX_VIEWS_RANGE, SIGMA_TARGET_MM, SIGMA_TARGET_MM_MAX
 
 DeviceKind = Literal["turntable", "stewart", "lift", "camera", "ipjr"]
@@ -84,11 +85,25 @@ class StewartGeometry:
 
 
 @dataclass(frozen=True)
+class Station:
+    """A place the Stewart base (with its lift) can be bolted down: its pose in the world."""
+
+    name: str
+    world_T_base: Pose3
+
+
+@dataclass(frozen=True)
 class StewartConfig:
     name: str
     link: Link
     geometry: StewartGeometry
-    world_T_base: Pose3
+    world_T_base: Pose3             # where the base stands now: the pose of `station`
+    # every place the base may stand ([stewart] world_T_base first, then [[stewart.stations]] in the
+    # file's order) and which one it is at; a BORG run takes the first whose base joints all stand
+    # `clearance_m` outside its turntable's rim (Rig.for_borg)
+    stations: tuple[Station, ...] = ()
+    station: str = "near"
+    clearance_m: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -317,6 +332,37 @@ class Rig:
         ipjrs = {n: replace(c, link=replace(c.link, **changes)) for n, c in self.ipjrs.items()}
         return replace(self, turntable=tt, stewart=sp, ipjrs=ipjrs, lift=lift)
 
+    def at_station(self, name: str) -> Rig:
+        """The same rig with its Stewart base (and lift) standing at station `name`."""
+        if self.stewart is None:
+            raise KeyError(f"rig {self.name!r} has no Stewart platform")
+        for st in self.stewart.stations:
+            if st.name == name:
+                return replace(self, stewart=replace(self.stewart, world_T_base=st.world_T_base, station=name))
+        raise KeyError(f"rig {self.name!r} has no station {name!r} (have: "
+                       f"{', '.join(s.name for s in self.stewart.stations)})")
+
+    def station_for(self, turntable_radius_m: float) -> str:
+        """The first station (in the file's order) whose base joints all stand `clearance_m` or more
+        outside a turntable rim of this radius (centred on the world z axis); the last one if none
+        does (a run's planner then lists what that station cannot see)."""
+        assert self.stewart is not None
+        g = self.stewart.geometry
+        for st in self.stewart.stations:
+            joints = np.array([st.world_T_base.transformFrom(j) for j in g.base_joints_m])
+            if np.hypot(joints[:, 0], joints[:, 1]).min() >= turntable_radius_m + self.stewart.clearance_m:
+                return st.name
+        return self.stewart.stations[-1].name
+
+    def for_borg(self, n: int) -> Rig:
+        """The rig as it stands for a BORG of size `n`: its Stewart base at the station that clears
+        that BORG's turntable (a rig with one station, or none, is itself)."""
+        if self.stewart is None or len(self.stewart.stations) < 2:
+            return self
+        from lab.core.structures.borg import SPACING_M, turntable_radius_m
+
+        return self.at_station(self.station_for(turntable_radius_m(n * SPACING_M)))
+
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "source": self.source, "simulated": self.simulated,
                 "devices": [{"name": n, "kind": k, "url": u} for n, k, u in self.devices()],
@@ -386,8 +432,16 @@ def parse_rig(data: dict[str, Any], source: str = "<dict>", base_dir: Path | Non
         link = _link(s)
         geometry = _stewart_geometry(s)
         world_T_base = s.pose("world_T_base")
+        station = s.string("station", default="near")
+        clearance = s.number("clearance_m", default=0.05, minimum=0.0, maximum=10.0, unit="m")
+        stations = [Station(station, world_T_base)] + _stations(s)
+        names_seen: set[str] = set()
+        for st in stations:
+            if st.name in names_seen or not st.name:
+                raise s.error("stations", f"station name {st.name!r} {'used twice' if st.name else 'is empty'}")
+            names_seen.add(st.name)
         s.done()
-        stewart = StewartConfig(nm, link, geometry, world_T_base)
+        stewart = StewartConfig(nm, link, geometry, world_T_base, tuple(stations), station, clearance)
 
     lift = None
     if "lift" in data:
@@ -491,6 +545,19 @@ def stewart_joints(base_radius_m: float, base_half_angle_deg: float, platform_ra
     return base, plat
 
 
+def _stations(s: "_Table") -> list[Station]:
+    """`[[stewart.stations]]`: further places the base can stand, each `name` and `world_T_base`."""
+    items = s._get("stations", [])
+    if not isinstance(items, list):
+        s._bad("stations", "an array of tables ([[stewart.stations]])", items)
+    out = []
+    for i, item in enumerate(items):
+        t = _Table(s.source, f"stewart.stations[{i}]", item)
+        out.append(Station(t.string("name"), t.pose("world_T_base")))
+        t.done()
+    return out
+
+
 def _stewart_geometry(s: _Table) -> StewartGeometry:
     explicit = "base_joints_m" in s.data or "platform_joints_m" in s.data
     if explicit:
@@ -550,7 +617,7 @@ _SIM_CAMERA_KEYS = {"width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px",
 def _sim(t: _Table) -> SimConfig:
     seed = t.integer("seed", default=0, minimum=0)
     speedup = t.number("speedup", default=1.0, positive=True, maximum=MAX_SPEEDUP)
-    borg_n = t.integer("borg_n", default=3, minimum=2, maximum=8)
+    borg_n = t.integer("borg_n", default=3, minimum=2, maximum=MAX_N)
     pty = t.boolean("pty", default=True)
     watchdog_s = t.number("watchdog_s", default=1.0, minimum=0.0, maximum=60.0, unit="s")
     if 0 < watchdog_s < 0.3:   # shorter would bite a healthy host between two polls (sim_devices/watchdog.py)

@@ -35,6 +35,7 @@ TAG_OFFSET_HORIZONTAL = np.array([-0.15, 0.07, 0.02])
 TAG_OFFSET_VERTICAL = np.array([-0.07, -0.15, 0.02])
 TURNTABLE_TAG_HEIGHT_M = -0.06  # tag centres on the turntable rim, below the structure's base
 TURNTABLE_MARGIN_M = 0.15       # rim radius beyond the structure's half-diagonal
+SPACING_M = 0.5                 # the BORG's cell size (build_borg's default)
 
 
 @dataclass(frozen=True)
@@ -212,10 +213,10 @@ class _Grid:
         return ids, tuple(sorted(sides))
 
 
-MAX_N = 8   # the largest BORG a lab turntable carries (the rig's borg_n has the same bound)
+MAX_N = 10  # the largest BORG a lab turntable carries (the rig's borg_n has the same bound)
 
 
-def build_borg(n: int = 3, spacing_m: float = 0.5) -> BorgModel:
+def build_borg(n: int = 3, spacing_m: float = SPACING_M) -> BorgModel:
     """The design model of an N x N x N BORG truss (N >= 2) on a turntable."""
     if int(n) != n or not 2 <= n <= MAX_N:
         raise ValueError(f"BORG size N must be an integer from 2 to {MAX_N}, got {n!r}")
@@ -324,11 +325,16 @@ def _build_table1(s: float) -> BorgModel:
     return _finish(3, s, grid, modules, tags, turntable)
 
 
+def turntable_radius_m(size_m: float) -> float:
+    """The rim radius of the turntable under a BORG `size_m` wide: its corners plus a margin."""
+    return float(size_m / np.sqrt(2) + TURNTABLE_MARGIN_M)
+
+
 def _turntable(L: float, first_id: int, face_of) -> tuple[Turntable, dict[int, Pose3]]:
     """Twelve rim tags, three per face: under the face's right-hand column, its middle, its left.
     Angles (about the axis, from +x) run 210, 180, ..., -120 deg: ids increase clockwise."""
     c = np.array([L / 2, L / 2, 0.0])
-    radius = L / np.sqrt(2) + TURNTABLE_MARGIN_M
+    radius = turntable_radius_m(L)
     poses = {}
     ids = tuple(range(first_id, first_id + 12))
     for k, tid in enumerate(ids):

@@ -1,0 +1,247 @@
+"""`lab bench layers`: is every module of a BORG verified, layer by layer, at every size the default
+rig claims (issue 23)?  For N = 3..10 (`--sizes`) and seeds, a real `lab run borg --n N` on the
+simulated bench (devices over their wire protocols, rendered frames, the real detector, the rig's
+true errors and its own rig survey) with faults in every layer, each just beyond the 5 mm / 1 deg
+tolerance -- a module 6 mm off (seeded direction), one turned 1.5 deg (seeded axis), a deployable
+deployed to 0.35 m of 0.5 m -- and in every layer a good module 3 mm off (inside the tolerance by
+more than the verdict's band).  Everything else is a good module as built.
+
+Figures per N and per layer (a module's layer: the cell row its nodes' mean height lies in):
+- modules `unverified` (for want of a view or otherwise), good modules flagged (false flags),
+  faults flagged;
+- good-module position error against the simulated truth (median, max; and the max over those
+  passed `ok`), |error| / stated 1-sigma (median), views per module, modules whose views were
+  re-planned;
+and per N: the run's wall time per module, its SLAM step (median), its peak memory.
+
+Trials run through `lab.core.executor` (--workers N, or --scheduler on a Dask cluster); finished trials
+are journaled in --out/trials.jsonl, so the same command after an interruption resumes.  A full
+study (N = 3..10 x 5 seeds) is hours of CPU; `--quick` is N = 3 and 4, one seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lab.core.executor import Trial, add_executor_arguments
+from lab.studies.bench_common import report_study, run_trial_study
+
+FAULT_OFFSET_M = 0.006                     # 1 mm beyond the 5 mm tolerance
+FAULT_ROTATION_RAD = math.radians(1.5)     # 0.5 deg beyond 1 deg
+FAULT_DEPLOYED_M = 0.35                    # of 0.5 m (the README job's 13D)
+GOOD_OFFSET_M = 0.003                      # inside 5 mm by more than the band (2 x ~0.3 mm)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quick", action="store_true", help="N = 3 and 4, one seed")
+    p.add_argument("--sizes", default=None, help="BORG sizes, comma-separated (default 3..10; --quick 3,4)")
+    p.add_argument("--seeds", type=int, default=None, help="seeds per size (default 5; --quick 1)")
+    p.add_argument("--speedup", type=float, default=100.0, help="simulated device speed-up (default 100)")
+    p.add_argument("--json", action="store_true", help="print the figures as JSON")
+    p.add_argument("--out", default="bench_out/layers", help="directory for the runs (default bench_out/layers)")
+    p.add_argument("--report", metavar="JSON", help="print the tables of an earlier (or interrupted) study's "
+                                                   "layers.json instead of running one")
+    add_executor_arguments(p)
+
+
+def _unit(rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def layer_of(model: Any, name: str) -> int:
+    """The cell row a module belongs to: where the mean height of its nodes lies (a horizontal
+    member on top of row k, z = (k + 1) s, closes row k)."""
+    m = model.module_by_name[name]
+    z = float(np.mean(model.nodes[list(m.nodes), 2]))
+    return int(min(max(math.floor(z / model.spacing_m - 1e-6), 0), model.n - 1))
+
+
+def plan_faults(n: int, seed: int) -> dict[str, tuple[str, Any]]:
+    """module -> (kind, value) for one trial: in every layer an offset fault, a rotation fault, a
+    partial deployment (a deployable of the layer) and a good module 3 mm off; seeded picks."""
+    from lab.core.structures.borg import build_borg
+
+    model = build_borg(n)
+    rng = np.random.default_rng([seed, n, 23])
+    out: dict[str, tuple[str, Any]] = {}
+    for layer in range(n):
+        names = [m.name for m in model.modules if layer_of(model, m.name) == layer]
+        deployables = [x for x in names if model.module_by_name[x].kind == "deployable"]
+        if deployables:
+            out[str(rng.choice(deployables))] = ("partial_deploy", FAULT_DEPLOYED_M)
+        for kind in ("offset", "rotation", "good"):
+            free = [x for x in names if x not in out]
+            if not free:
+                break
+            pick = str(rng.choice(free))
+            if kind == "offset":
+                out[pick] = ("offset", [float(x) for x in FAULT_OFFSET_M * _unit(rng)])
+            elif kind == "rotation":
+                out[pick] = ("rotation", [float(x) for x in FAULT_ROTATION_RAD * _unit(rng)])
+            else:
+                out[pick] = ("good", [float(x) for x in GOOD_OFFSET_M * _unit(rng)])
+    return out
+
+
+def scenario(seed: int, faults: dict[str, tuple[str, Any]]) -> str:
+    """The trial's scenario: its seed (the rig's own errors stay: [sim.rig_error]) and the faults."""
+    lines = [f"seed = {seed}"]
+    for module, (kind, value) in faults.items():
+        if kind == "partial_deploy":
+            lines += ["", "[[borg.fault]]", 'kind = "partial_deploy"', f'module = "{module}"', f"height_m = {value}"]
+        else:
+            key = "rotation_rad" if kind == "rotation" else "offset_m"
+            lines += ["", "[[borg.fault]]", 'kind = "module_offset"', f'module = "{module}"', f"{key} = {value}"]
+    return "\n".join(lines) + "\n"
+
+
+def _run(cmd: list[str], log: Path) -> tuple[int, float]:
+    """Run `cmd`, its output to `log`; (exit code, peak resident memory in MB of that process)."""
+    with open(log, "w") as f:
+        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(p.pid, 0)
+        p.returncode = os.waitstatus_to_exitcode(status)
+    return p.returncode, usage.ru_maxrss / 1024.0
+
+
+def trial(out: Path, n: int, seed: int, speedup: float) -> dict[str, Any]:
+    from lab.core.structures.borg import build_borg
+    from lab.studies.bench_run import _median_metric
+
+    d = out / f"n{n}-seed{seed}"
+    faults = plan_faults(n, seed)
+    sc = out / f"scenario-n{n}-seed{seed}.toml"
+    sc.write_text(scenario(seed, faults))
+    cmd = [sys.executable, "-m", "lab", "run", "borg", "--n", str(n), "--auto", "--quiet", "--on-flag", "continue",
+           "--scenario", str(sc), "--speedup", str(speedup), "--out", str(d), "--replace"]
+    t0 = time.perf_counter()
+    code, peak_mb = _run(cmd, out / f"n{n}-seed{seed}.log")
+    wall = time.perf_counter() - t0
+    if not (d / "summary.json").exists():
+        raise RuntimeError(f"{' '.join(cmd)} failed (exit {code}): see {out / f'n{n}-seed{seed}.log'}")
+    s = json.loads((d / "summary.json").read_text())
+    if s["result"] != "completed":
+        raise RuntimeError(f"{' '.join(cmd)} ended {s['result']}: {s.get('reason', '')}")
+    model = build_borg(n)
+    rows = []
+    for m in s["modules"]:
+        kind = faults.get(m["name"], ("none", None))[0]
+        rows.append({"name": m["name"], "layer": layer_of(model, m["name"]), "fault": kind not in ("none", "good"),
+                     "verdict": m["verdict"], "views": m.get("views"),
+                     "error_m": m.get("position_error_m"), "sigma_m": m.get("sigma_position_m"),
+                     "replanned": "re-planned" in (m.get("reason") or "")})
+    return {"n": n, "seed": seed, "result": s["result"], "wall_s": wall, "modules": rows,
+            "peak_rss_mb": peak_mb, "views": s.get("views"),
+            "slam_update_s_median": _median_metric(d / "run.mcap", "slam/update_s")}
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    out: str        # absolute: a Dask worker's working directory is its own
+    n: int
+    speedup: float
+
+
+def layers_trial(t: Trial) -> dict[str, Any]:
+    s: RunSpec = t.spec
+    return trial(Path(s.out), s.n, t.seed, s.speedup)
+
+
+def _row(key: dict[str, Any], mods: list[dict[str, Any]]) -> dict[str, Any]:
+    good = [m for m in mods if not m["fault"]]
+    faults = [m for m in mods if m["fault"]]
+    read = [m for m in good if m["error_m"] is not None]
+    err = np.array([m["error_m"] for m in read], float)
+    ratio = np.array([m["error_m"] / m["sigma_m"] for m in read if m["sigma_m"]], float)
+    return {**key, "modules": len(mods), "unverified": sum(m["verdict"] == "unverified" for m in mods),
+            "uncertain": sum(m["verdict"] == "uncertain" for m in mods),
+            "false_flags": sum(m["verdict"] == "flagged" for m in good), "good": len(good),
+            "faults_caught": sum(m["verdict"] == "flagged" for m in faults), "faults": len(faults),
+            "replanned": sum(m["replanned"] for m in mods),
+            "error_mm_median": float(np.median(err) * 1e3) if err.size else None,
+            "error_mm_max": float(err.max() * 1e3) if err.size else None,
+            # the modules passed `ok`: what the verdict vouches for
+            "ok_error_mm_max": max((m["error_m"] * 1e3 for m in read if m["verdict"] == "ok"), default=None),
+            "ratio_median": float(np.median(ratio)) if ratio.size else None,
+            "views_per_module": float(np.mean([m["views"] or 0 for m in mods])) if mods else None}
+
+
+def aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    rows = []
+    for n in sorted({t["n"] for t in trials}):
+        ts = [t for t in trials if t["n"] == n]
+        mods = [m for t in ts for m in t["modules"]]
+        whole = _row({"n": n, "layer": "all", "runs": len(ts)}, mods)
+        whole.update({"wall_s_per_module": float(np.median([t["wall_s"] / max(len(t["modules"]), 1) for t in ts])),
+                      "slam_update_ms_median": float(np.median([t["slam_update_s_median"] for t in ts]) * 1e3),
+                      "peak_rss_mb": float(max(t["peak_rss_mb"] for t in ts))})
+        rows.append(whole)
+        for layer in range(n):
+            rows.append(_row({"n": n, "layer": layer, "runs": len(ts)}, [m for m in mods if m["layer"] == layer]))
+    return rows
+
+
+def to_markdown(res: dict[str, Any]) -> str:
+    def f(v: Any, spec: str = ".2f") -> str:
+        return "—" if v is None else format(v, spec)
+
+    lines = [f"`{res['command']}` ({res['runs']} runs, {res['wall_s']:.0f} s)", "",
+             "| N | layer | runs | modules | unverified | uncertain | false flags | faults flagged | re-planned | "
+             "error median / max (mm) | max of `ok` (mm) | \\|err\\|/1σ median | views / module | run s / module | "
+             "SLAM step (ms) | peak memory (MB) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in res["rows"]:
+        whole = r["layer"] == "all"
+        lines.append(
+            f"| {r['n']} | {r['layer']} | {r['runs']} | {r['modules']} | {r['unverified']} | {r['uncertain']} | "
+            f"{r['false_flags']}/{r['good']} | {r['faults_caught']}/{r['faults']} | {r['replanned']} | "
+            f"{f(r['error_mm_median'])} / {f(r['error_mm_max'])} | {f(r.get('ok_error_mm_max'))} | {f(r['ratio_median'])} | "
+            f"{f(r['views_per_module'], '.1f')} | {f(r.get('wall_s_per_module') if whole else None, '.1f')} | "
+            f"{f(r.get('slam_update_ms_median') if whole else None, '.1f')} | "
+            f"{f(r.get('peak_rss_mb') if whole else None, '.0f')} |")
+    return "\n".join(lines)
+
+
+def _progress(r: dict[str, Any]) -> str:
+    mods = r["modules"]
+    good = [m for m in mods if not m["fault"]]
+    err = np.array([m["error_m"] for m in good if m["error_m"] is not None], float)
+    return (f"  N {r['n']} seed {r['seed']}: {len(mods)} modules, "
+            f"{sum(m['verdict'] == 'unverified' for m in mods)} unverified, "
+            f"{sum(m['verdict'] == 'flagged' for m in good)} false flags, faults "
+            f"{sum(m['verdict'] == 'flagged' for m in mods if m['fault'])}/{sum(m['fault'] for m in mods)}, "
+            f"error max {err.max() * 1e3 if err.size else float('nan'):.2f} mm, {r['wall_s']:.0f} s")
+
+
+def run(args: argparse.Namespace) -> int:
+    from lab.core.errors import UserError
+    from lab.core.structures.borg import MAX_N
+
+    if args.report:
+        return report_study(args.report, "layers", aggregate, to_markdown)
+    text = args.sizes or ("3,4" if args.quick else ",".join(map(str, range(3, MAX_N + 1))))
+    try:
+        sizes = [int(x) for x in text.split(",")]
+    except ValueError:
+        raise UserError(f"--sizes: expected integers separated by commas, got {text!r}") from None
+    seeds = args.seeds if args.seeds is not None else (1 if args.quick else 5)
+    if not sizes or any(not 2 <= n <= MAX_N for n in sizes) or seeds < 1:
+        raise UserError(f"--sizes must be in 2..{MAX_N}, --seeds >= 1")
+    if not (math.isfinite(args.speedup) and 1 <= args.speedup <= 1000):
+        raise UserError(f"--speedup must be in [1, 1000], got {args.speedup}")
+    out = Path(args.out).resolve()
+    runs = [Trial(f"n{n}-seed{seed}", seed, RunSpec(str(out), n, args.speedup)) for n in sizes for seed in range(seeds)]
+    return run_trial_study(args, "layers", runs, layers_trial, {"sizes": sizes, "seeds": seeds},
+                           aggregate, to_markdown, _progress)

@@ -1,0 +1,82 @@
+"""`lab bench layers` (issue 23): faults in every layer of every size, figures per layer.  CI checks
+what the study asks of each run and how it counts; the study itself (real runs) is `slow`."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from lab.core.structures.borg import build_borg
+from lab.studies.bench_layers import (FAULT_DEPLOYED_M, FAULT_OFFSET_M, GOOD_OFFSET_M, aggregate, layer_of,
+                                      plan_faults, scenario)
+
+
+@pytest.mark.parametrize("n", [3, 4])
+def test_every_layer_gets_each_fault_kind_and_a_good_module_just_inside(n):
+    model = build_borg(n)
+    faults = plan_faults(n, seed=1)
+    assert plan_faults(n, seed=1) == faults and plan_faults(n, seed=2) != faults      # seeded
+    for layer in range(n):
+        kinds = {k for name, (k, _) in faults.items() if layer_of(model, name) == layer}
+        assert {"offset", "rotation", "good"} <= kinds, (layer, kinds)
+        if any(m.kind == "deployable" and layer_of(model, m.name) == layer for m in model.modules):
+            assert "partial_deploy" in kinds
+    for name, (kind, value) in faults.items():
+        if kind == "partial_deploy":
+            assert model.module_by_name[name].kind == "deployable" and value == FAULT_DEPLOYED_M
+        elif kind in ("offset", "good"):
+            assert sum(x * x for x in value) ** 0.5 == pytest.approx(FAULT_OFFSET_M if kind == "offset" else GOOD_OFFSET_M)
+    text = scenario(1, faults)
+    assert text.startswith("seed = 1\n") and text.count("[[borg.fault]]") == len(faults)
+
+
+def test_the_layer_of_a_module_is_the_cell_row_it_closes():
+    model = build_borg(3)
+    rows = {m.name: layer_of(model, m.name) for m in model.modules}
+    assert rows["2D"] == rows["6S"] == rows["1P"] == 0            # a bottom cell, a base strut, the square on it
+    assert rows["10CT"] == rows["12S"] == rows["15P"] == 1        # the centre cell, a middle strut and square
+    assert rows["11D"] == rows["16S"] == 2 and rows["27P"] == 1      # 27P closes row 1 at z = 1 m
+
+
+def test_the_figures_count_per_layer_and_per_size():
+    mods = [{"name": "a", "layer": 0, "fault": False, "verdict": "ok", "views": 4, "error_m": 0.0002, "sigma_m": 0.0004,
+             "replanned": False},
+            {"name": "b", "layer": 0, "fault": True, "verdict": "flagged", "views": 5, "error_m": 0.001, "sigma_m": 0.0004,
+             "replanned": True},
+            {"name": "c", "layer": 1, "fault": False, "verdict": "unverified", "views": 6, "error_m": None,
+             "sigma_m": None, "replanned": True},
+            {"name": "d", "layer": 1, "fault": False, "verdict": "flagged", "views": 3, "error_m": 0.0008,
+             "sigma_m": 0.0002, "replanned": False}]
+    rows = aggregate([{"n": 2, "seed": 0, "wall_s": 40.0, "modules": mods, "peak_rss_mb": 300.0,
+                       "slam_update_s_median": 0.01}])
+    whole, l0, l1 = rows
+    assert (whole["layer"], whole["modules"], whole["unverified"], whole["false_flags"], whole["good"]) == ("all", 4, 1, 1, 3)
+    assert (whole["faults_caught"], whole["faults"], whole["replanned"]) == (1, 1, 2)
+    assert whole["error_mm_max"] == pytest.approx(0.8) and whole["views_per_module"] == pytest.approx(4.5)
+    assert whole["ok_error_mm_max"] == pytest.approx(0.2)
+    assert whole["wall_s_per_module"] == pytest.approx(10.0) and whole["peak_rss_mb"] == 300.0
+    assert (l0["modules"], l0["false_flags"], l0["faults_caught"]) == (2, 0, 1)
+    assert (l1["unverified"], l1["false_flags"], l1["error_mm_median"]) == (1, 1, pytest.approx(0.8))
+    assert l1["ratio_median"] == pytest.approx(4.0)
+
+
+@pytest.mark.parametrize("args, match", [(["--sizes", "3,11"], "--sizes must be in 2..10"),
+                                         (["--sizes", "3,x"], "--sizes: expected integers"),
+                                         (["--seeds", "0"], "--seeds >= 1"),
+                                         (["--speedup", "0"], "--speedup must be in")])
+def test_bad_input_is_one_line_exit_2(lab, args, match):
+    code, out, err = lab.main("bench", "layers", *args)
+    assert code == 2 and match in err and len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.slow
+def test_the_quick_study_verifies_every_layer(lab, tmp_path):
+    r = lab(["bench", "layers", "--quick", "--json", "--out", str(tmp_path / "layers")], timeout=3600)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    rows = json.loads(r.stdout)["rows"]
+    whole = [row for row in rows if row["layer"] == "all"]
+    assert [row["n"] for row in whole] == [3, 4]
+    for row in rows:
+        assert row["unverified"] == 0 and row["false_flags"] == 0, row
+        assert row["error_mm_max"] is None or row["error_mm_max"] <= 1.0, row

@@ -1,0 +1,79 @@
+"""Reach (issue 23): the default rig verifies BORG structures up to 10x10x10.  A turntable wider
+than the near pedestal leaves room for (N >= 8) puts the Stewart base on its far station, the
+lift's 5 m mast carries the camera to the top layers, and a dry run finds every module of an
+8x8x8 observable before anything moves."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import lab.core.config as config
+from lab.core.config import RigError, load_rig
+from lab.core.structures.borg import SPACING_M, build_borg, turntable_radius_m
+
+
+def test_the_base_stands_at_the_first_station_clear_of_the_turntable():
+    rig = load_rig()
+    assert [s.name for s in rig.stewart.stations] == ["near", "far"] and rig.stewart.station == "near"
+    for n in range(2, 11):
+        at = rig.for_borg(n)
+        radius = turntable_radius_m(n * SPACING_M)
+        joints = np.array([at.stewart.world_T_base.transformFrom(j) for j in at.stewart.geometry.base_joints_m])
+        clear = np.hypot(joints[:, 0], joints[:, 1]).min() - radius
+        assert at.stewart.station == ("near" if n <= 7 else "far"), n
+        assert clear >= rig.stewart.clearance_m, (n, clear)
+        if n >= 8:    # the near pedestal would stand on this turntable
+            near = np.array([rig.stewart.world_T_base.transformFrom(j) for j in rig.stewart.geometry.base_joints_m])
+            assert np.hypot(near[:, 0], near[:, 1]).min() < radius + rig.stewart.clearance_m
+    assert build_borg(4).turntable.radius_m == turntable_radius_m(4 * SPACING_M)
+    # choosing is idempotent, and the rig file's pose is kept for the near station
+    assert rig.for_borg(3).stewart.world_T_base.equals(rig.stewart.world_T_base, 0.0)
+    assert rig.for_borg(9).for_borg(9).stewart.world_T_base.equals(rig.for_borg(9).stewart.world_T_base, 0.0)
+    assert rig.for_borg(9).stewart.world_T_base.translation()[0] == pytest.approx(-4.45)
+
+
+def _rig_text(tmp_path: Path, edit) -> Path:
+    rig_dir = Path(config.default_rig_path()).parent
+    (tmp_path / "sim_camera.json").write_bytes((rig_dir / "sim_camera.json").read_bytes())
+    path = tmp_path / "rig.toml"
+    path.write_text(edit((rig_dir / "sim.toml").read_text()))
+    return path
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda t: t.replace('name = "far"', 'name = "near"'), r"\[stewart\]\.stations: station name 'near' used twice"),
+    (lambda t: t.replace('name = "far"', 'name = "far"\nheight_m = 1'), r"\[stewart\.stations\[0\]\]\.height_m: unknown key"),
+    (lambda t: t.replace('world_T_base = { xyz_m = [-4.45, 0.0, 0.27]', 'world_T_base = { xyz_m = [-4.45, 0.0]'),
+     r"\[stewart\.stations\[0\]\.world_T_base\]\.xyz_m: expected a list of 3 numbers"),
+    (lambda t: t.replace("clearance_m = 0.05", "clearance_m = -1"), r"\[stewart\]\.clearance_m: must be >= 0"),
+])
+def test_a_bad_station_is_one_line_naming_the_key(tmp_path, edit, match):
+    with pytest.raises(RigError, match=match):
+        load_rig(_rig_text(tmp_path, edit))
+
+
+def test_a_dry_run_finds_every_module_of_an_8x8x8_observable(lab):
+    """Before issue 23 the same dry run refused 95 of the 410 modules (the near pedestal 0.95 m
+    from the face, the camera below the top layers)."""
+    r = lab(["run", "borg", "--n", "8", "--dry-run"], timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "dry run of borg: 411 steps planned" in r.stdout       # the rig survey + 410 modules
+    assert "all planned moves are within limits" in r.stdout
+    assert "REFUSED" not in r.stdout and "unobservable" not in r.stdout + r.stderr
+
+
+@pytest.mark.slow
+def test_a_dry_run_finds_every_module_of_a_10x10x10_observable(lab):
+    r = lab(["run", "borg", "--n", "10", "--dry-run"], timeout=1200)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "dry run of borg: 665 steps planned" in r.stdout
+    assert "REFUSED" not in r.stdout
+
+
+def test_borg_sizes_beyond_ten_are_one_line(lab):
+    code, out, err = lab.main("run", "borg", "--n", "11", "--dry-run")
+    assert code == 2 and "2 to 10" in err and len(err.strip().splitlines()) == 1, err

@@ -1,0 +1,60 @@
+"""Views that adapt (issue 23): a planned view that does not show the tags it was planned for is
+followed, within the step's view budget, by views re-planned from the calibrated rig and the
+graph's estimate of the structure, and the module gets a verdict; what was tried is in its reason."""
+
+from __future__ import annotations
+
+import math
+
+from lab.cli.run import _build
+from lab.core.recorder import RunRecorder
+from procedures import runner
+from procedures.survey import SurveyPlan, View
+
+
+def test_a_planned_view_that_misses_is_re_planned_and_the_module_gets_a_verdict(tmp_path):
+    proc, bench, _ = _build("borg", {"n": 3, "modules": 2, "no_rig_survey": True, "speedup": 100.0})
+    try:
+        tags = proc.model.module_by_name["2D"].tags
+        # a deliberately bad plan for 2D (face 1): one view of face 3, "planned" to show its tags
+        bad = View(math.pi, (0.0,) * 6)
+        assert not set(tags) & set(proc.planner.visible(bad, proc.model.tags))
+        proc.surveys["2D"] = SurveyPlan("2D", [bad], [list(tags)], [], None)
+        outcome = runner.run(proc, tmp_path / "r", info={}, operator_auto=True, show_progress=False,
+                             recorder_factory=lambda p: RunRecorder(p, "borg", {}))
+    finally:
+        proc.close()
+    assert outcome.result == "completed", outcome
+    r = proc.results["2D"]
+    assert r.verdict == "ok", (r.verdict, r.reason)
+    assert set(r.tags_seen) == set(tags)
+    views = [v for v in proc.views_done if v["module"] == "2D"]
+    assert views[0]["turntable_rad"] == math.pi and not set(tags) & {d["id"] for d in views[0]["detections"]}
+    again = [v for v in views if v["round"] >= 1]
+    assert again and r.views == len(views) == 1 + len(again) <= proc.precision.max_views
+    # the re-planned views are the ones that showed it
+    assert set(tags) <= {d["id"] for v in again for d in v["detections"]}
+    assert f"re-planned: tag {tags[0]} seen in 0 of 1 view(s), tag {tags[1]} seen in 0 of 1 view(s)" in r.reason
+    assert "every tag of it measured" in r.reason
+    # the module planned as usual is untouched by it
+    assert "re-planned" not in proc.results["1P"].reason
+
+
+def test_a_strut_across_the_line_of_sight_hides_a_point_and_one_behind_it_does_not():
+    import numpy as np
+
+    from procedures.survey import _segments_within
+
+    cam = np.zeros(3)
+    pts = np.array([[0.0, 0.0, 2.0], [0.3, 0.0, 2.0]])
+    across = (np.array([[-1.0, 0.005, 1.0]]), np.array([[1.0, 0.005, 1.0]]))      # 5 mm off both sight lines' plane
+    assert _segments_within(cam, pts, *across, radius=0.015).tolist() == [True, True]
+    behind = (np.array([[-1.0, 0.0, 2.5]]), np.array([[1.0, 0.0, 2.5]]))
+    assert _segments_within(cam, pts, *behind, radius=0.015).tolist() == [False, False]
+    beside = (np.array([[0.1, -1.0, 1.0]]), np.array([[0.1, -0.05, 1.0]]))        # ends short of the lines
+    assert _segments_within(cam, pts, *beside, radius=0.015).tolist() == [False, False]
+    short = (np.array([[-1.0, 0.0, 1.0]]), np.array([[0.1, 0.0, 1.0]]))           # crosses only the first
+    assert _segments_within(cam, pts, *short, radius=0.015).tolist() == [True, False]
+    # the member a tag is mounted on, 2 cm behind its face, is not in front of it
+    mount = (np.array([[-1.0, 0.0, 2.02]]), np.array([[1.0, 0.0, 2.02]]))
+    assert _segments_within(cam, pts, *mount, radius=0.015).tolist() == [False, False]
