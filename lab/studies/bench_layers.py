@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from lab.core.executor import Trial, add_executor_arguments
+from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED
 from lab.studies.bench_common import report_study, run_trial_study
 
 FAULT_OFFSET_M = 0.006                     # 1 mm beyond the 5 mm tolerance
@@ -165,15 +166,15 @@ def _row(key: dict[str, Any], mods: list[dict[str, Any]]) -> dict[str, Any]:
     read = [m for m in good if m["error_m"] is not None]
     err = np.array([m["error_m"] for m in read], float)
     ratio = np.array([m["error_m"] / m["sigma_m"] for m in read if m["sigma_m"]], float)
-    return {**key, "modules": len(mods), "unverified": sum(m["verdict"] == "unverified" for m in mods),
-            "uncertain": sum(m["verdict"] == "uncertain" for m in mods),
-            "false_flags": sum(m["verdict"] == "flagged" for m in good), "good": len(good),
-            "faults_caught": sum(m["verdict"] == "flagged" for m in faults), "faults": len(faults),
+    return {**key, "modules": len(mods), "unverified": sum(m["verdict"] == UNVERIFIED for m in mods),
+            "uncertain": sum(m["verdict"] == UNCERTAIN for m in mods),
+            "false_flags": sum(m["verdict"] == FLAGGED for m in good), "good": len(good),
+            "faults_caught": sum(m["verdict"] == FLAGGED for m in faults), "faults": len(faults),
             "replanned": sum(m["replanned"] for m in mods),
             "error_mm_median": float(np.median(err) * 1e3) if err.size else None,
             "error_mm_max": float(err.max() * 1e3) if err.size else None,
             # the modules passed `ok`: what the verdict vouches for
-            "ok_error_mm_max": max((m["error_m"] * 1e3 for m in read if m["verdict"] == "ok"), default=None),
+            "ok_error_mm_max": max((m["error_m"] * 1e3 for m in read if m["verdict"] == OK), default=None),
             "ratio_median": float(np.median(ratio)) if ratio.size else None,
             "views_per_module": float(np.mean([m["views"] or 0 for m in mods])) if mods else None}
 
@@ -219,9 +220,9 @@ def _progress(r: dict[str, Any]) -> str:
     good = [m for m in mods if not m["fault"]]
     err = np.array([m["error_m"] for m in good if m["error_m"] is not None], float)
     return (f"  N {r['n']} seed {r['seed']}: {len(mods)} modules, "
-            f"{sum(m['verdict'] == 'unverified' for m in mods)} unverified, "
-            f"{sum(m['verdict'] == 'flagged' for m in good)} false flags, faults "
-            f"{sum(m['verdict'] == 'flagged' for m in mods if m['fault'])}/{sum(m['fault'] for m in mods)}, "
+            f"{sum(m['verdict'] == UNVERIFIED for m in mods)} unverified, "
+            f"{sum(m['verdict'] == FLAGGED for m in good)} false flags, faults "
+            f"{sum(m['verdict'] == FLAGGED for m in mods if m['fault'])}/{sum(m['fault'] for m in mods)}, "
             f"error max {err.max() * 1e3 if err.size else float('nan'):.2f} mm, {r['wall_s']:.0f} s")
 
 
