@@ -14,6 +14,7 @@ from __future__ import annotations
 import threading
 import urllib.parse
 from dataclasses import dataclass, field
+from typing import Callable
 
 from lab.core.config import Rig, load_rig
 from lab.core.errors import UserError
@@ -106,6 +107,71 @@ def _endpoint(name: str, url: str, ephemeral: bool, http: bool) -> tuple[str, in
     return parts.hostname, 0 if ephemeral else int(parts.port or 0), parts.path
 
 
+@dataclass(frozen=True)
+class Spot:
+    """Where a simulator is made: the rig's device entry and the world it simulates."""
+
+    name: str
+    kind: str
+    url: str
+    http: bool
+    path: str
+    world: SimWorld
+    rig: Rig
+
+
+@dataclass(frozen=True)
+class Served:
+    """A simulator reached over HTTP: how to start its server, the object tests drive (or None),
+    and the path its URL ends with (the camera's snapshot)."""
+
+    serve: Callable[[FaultInjector, str, int, Firmware], HttpDeviceServer]
+    device: object | None = None
+    url_path: str = ""
+
+
+def _turntable(s: Spot) -> LineDevice:
+    t = s.rig.sim.turntable
+    assert s.world.turntable is not None
+    return TurntableSim(s.world.turntable, t["min_deg"], t["max_deg"], s.name)
+
+
+def _stewart(s: Spot) -> LineDevice:
+    assert s.world.stewart_legs is not None and s.rig.stewart is not None
+    g = s.rig.stewart.geometry
+    margin = s.rig.sim.stewart["stroke_margin_mm"]
+    return StewartSim(s.world.stewart_legs, g, g.leg_min_m * 1000 - margin, g.leg_max_m * 1000 + margin, s.name)
+
+
+def _lift(s: Spot) -> LineDevice:
+    assert s.world.lift is not None
+    return LiftSim(s.world.lift, s.rig.sim.lift["min_mm"], s.rig.sim.lift["max_mm"], s.name)
+
+
+def _ipjr(s: Spot) -> LineDevice | Served:
+    act = s.world.ipjrs[s.name]
+    if not s.http:
+        return IpjrSerialSim(act)
+    # HTTP has no standing link to lose: a dropped request leaves the actuator moving, until the
+    # watchdog sees the host silent
+    return Served(lambda faults, host, port, firmware: HttpDeviceServer(
+        s.name, ipjr_routes(act), faults, is_moving=act.moving, motion_paths=frozenset({"/step"}), host=host,
+        port=port, stop=act.stop, firmware=firmware).start(), act)
+
+
+def _camera(s: Spot) -> Served:
+    if not s.path or s.path == "/":
+        raise UserError(f"simulated camera {s.name}: url {s.url!r} needs a snapshot path, e.g. /frame.jpg")
+    return Served(lambda faults, host, port, firmware: HttpDeviceServer(
+        s.name, camera_routes(s.world, s.name, s.path), faults, host=host, port=port).start(), None, s.path)
+
+
+# each kind of device and what simulates it: a line device (the serial protocol, on a socket and a
+# pty) or an HTTP server
+SIMULATORS: dict[str, Callable[[Spot], LineDevice | Served]] = {
+    "turntable": _turntable, "stewart": _stewart, "lift": _lift, "ipjr": _ipjr, "camera": _camera}
+
+
 def start_sim_bench(rig: Rig | None = None, scenario: Scenario | None = None, *, speedup: float | None = None,
                     ephemeral_ports: bool = True, pty: bool = False, place_all: bool = False,
                     borg_n: int | None = None, firmware: Firmware | None = None) -> SimBench:
@@ -132,46 +198,23 @@ def start_sim_bench(rig: Rig | None = None, scenario: Scenario | None = None, *,
             host, port, path = _endpoint(name, url, ephemeral_ports, http)
             faults = FaultInjector(name, http=http, seed=world.seed)
             bench.faults[name] = faults
-            line_device: LineDevice | None = None
-            if kind == "turntable":
-                assert world.turntable is not None
-                line_device = TurntableSim(world.turntable, sim.turntable["min_deg"], sim.turntable["max_deg"], name)
-            elif kind == "stewart":
-                assert world.stewart_legs is not None and rig.stewart is not None
-                g = rig.stewart.geometry
-                margin = sim.stewart["stroke_margin_mm"]
-                line_device = StewartSim(world.stewart_legs, g, g.leg_min_m * 1000 - margin, g.leg_max_m * 1000 + margin,
-                                         name)
-            elif kind == "lift":
-                assert world.lift is not None
-                line_device = LiftSim(world.lift, sim.lift["min_mm"], sim.lift["max_mm"], name)
-            elif kind == "ipjr" and not http:
-                line_device = IpjrSerialSim(world.ipjrs[name])
-            if line_device is not None:
+            build = SIMULATORS.get(kind)
+            if build is None:
+                raise UserError(f"no simulator for device {name} of kind {kind}")
+            sim_device = build(Spot(name, kind, url, http, path, world, rig))
+            if isinstance(sim_device, LineDevice):
                 if http:
                     raise UserError(f"simulated device {name}: a {kind} speaks the serial protocol; use a socket:// URL")
-                server: LineServer | HttpDeviceServer = LineServer(line_device, faults, host, port, pty=pty,
+                server: LineServer | HttpDeviceServer = LineServer(sim_device, faults, host, port, pty=pty,
                                                                    firmware=firmware).start()
-                bench.devices[name] = line_device
-                bench.urls[name] = server.url
+                bench.devices[name] = sim_device
                 if server.pty_path:
                     bench.pty_paths[name] = server.pty_path
-            elif kind == "ipjr":
-                act = world.ipjrs[name]
-                # HTTP has no standing link to lose: a dropped request leaves the actuator moving,
-                # until the watchdog sees the host silent
-                server = HttpDeviceServer(name, ipjr_routes(act), faults, is_moving=act.moving,
-                                          motion_paths=frozenset({"/step"}), host=host, port=port, stop=act.stop,
-                                          firmware=firmware).start()
-                bench.devices[name] = act
-                bench.urls[name] = server.url
-            elif kind == "camera":
-                if not path or path == "/":
-                    raise UserError(f"simulated camera {name}: url {url!r} needs a snapshot path, e.g. /frame.jpg")
-                server = HttpDeviceServer(name, camera_routes(world, name, path), faults, host=host, port=port).start()
-                bench.urls[name] = server.url + path
             else:
-                raise UserError(f"no simulator for device {name} of kind {kind}")
+                server = sim_device.serve(faults, host, port, firmware)
+                if sim_device.device is not None:
+                    bench.devices[name] = sim_device.device
+            bench.urls[name] = server.url + (sim_device.url_path if isinstance(sim_device, Served) else "")
             bench.servers[name] = server
         for i, f in enumerate(world.scenario.device_faults):
             if f.device not in bench.faults:
