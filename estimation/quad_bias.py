@@ -31,7 +31,7 @@ import math
 import cv2
 import numpy as np
 
-from estimation.tag_quads import CELLS, MAX_REACH_PX, MIN_REACH_PX, _bilinear, _tag_levels, edge_blur_px, fit_quads
+from estimation.tag_quads import CELLS, MAX_REACH_PX, MIN_REACH_PX, _bilinear, edge_blur_px, fit_quads
 
 __all__ = ["needs_correction", "blur_bias"]
 

@@ -23,7 +23,6 @@ The builders return `CaseSpec`s (name, expected, check); bench_faults.py wraps t
 from __future__ import annotations
 
 import json
-import math
 import os
 import re
 import shutil

@@ -36,7 +36,7 @@ import os
 import time
 
 from lab.studies.bench_common import save_figure
-from lab.studies.fiducial_scenes import _camera, random_tag_pose, tag_pose_on_ray, twenty_tag_frames
+from lab.studies.fiducial_scenes import _camera, random_tag_pose, twenty_tag_frames
 
 DISTANCES_M = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 MAX_VIEW_ANGLE_DEG = 60.0
