@@ -37,7 +37,7 @@ import numpy as np
 
 from lab.core.executor import Trial, add_executor_arguments
 from lab.core.verdicts import FLAGGED, UNCERTAIN, UNVERIFIED
-from lab.studies.bench_common import report_study, run_trial_study, study_size
+from lab.studies.bench_common import cell, report_study, run_trial_study, study_heading, study_size
 
 # Faults among the first 9 modules, so --quick sees them all: a partial deployment and a 15 mm
 # offset must be flagged, a displaced tag rejected (its module unverified), a 2 mm offset passed.
@@ -206,20 +206,18 @@ def _rmse_over_bound(ts: list[dict[str, Any]]) -> float | None:
 
 
 def to_markdown(res: dict[str, Any]) -> str:
-    lines = [f"`{res['command']}` ({res['runs']} runs, {res['wall_s']:.0f} s)", "",
+    lines = [study_heading(res), "",
              "| mode | rig error | runs | false flags | uncertain or unverified | faults caught | "
              "pos. error median / max (mm) | RMSE / bound | rot. error median / max (deg) | SLAM step median (ms) | "
              "run wall median (s) |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
-        def f(v, spec=".2f"):
-            return "—" if v is None else format(v, spec)
         lines.append(f"| {r['mode']} | {r['rig_error_scale']:g}x default | {r['runs']} | "
                      f"{r['false_flags']}/{r['good_modules']} ({100 * r['false_flag_rate']:.1f} %) | "
                      f"{r.get('undecided', 0)} | "
-                     f"{r['faults_caught']} | {f(r['position_error_mm_median'])} / {f(r['position_error_mm_max'])} | "
-                     f"{f(r.get('position_rmse_over_bound'))} | "
-                     f"{f(r['rotation_error_deg_median'], '.3f')} / {f(r['rotation_error_deg_max'], '.3f')} | "
+                     f"{r['faults_caught']} | {cell(r['position_error_mm_median'])} / {cell(r['position_error_mm_max'])} | "
+                     f"{cell(r.get('position_rmse_over_bound'))} | "
+                     f"{cell(r['rotation_error_deg_median'], '.3f')} / {cell(r['rotation_error_deg_max'], '.3f')} | "
                      f"{r['slam_update_ms_median']:.1f} | {r['wall_s_median']:.0f} |")
     cal_rows = [r for r in res["rows"] if "camera_mount_mm_max" in r]
     if cal_rows:

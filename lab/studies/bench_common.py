@@ -25,6 +25,16 @@ def save_figure(fig, out_dir: str, name: str, dpi: int = 110) -> str:
     return path
 
 
+def cell(value: Any, spec: str = ".2f") -> str:
+    """A table cell of a study's markdown: the figure, or a dash where there is none."""
+    return "—" if value is None else format(value, spec)
+
+
+def study_heading(res: dict[str, Any]) -> str:
+    """The line above a trial study's table: the command that made it, its runs and its time."""
+    return f"`{res['command']}` ({res['runs']} runs, {res['wall_s']:.0f} s)"
+
+
 def study_size(args: argparse.Namespace, quick_scales: str) -> tuple[int, int, list[float]]:
     """Seeds, modules per run and rig-error scales of a trial study (`lab bench trust`,
     `lab bench calibration`): the flags, else 2 x 9 modules with `quick_scales` under --quick,

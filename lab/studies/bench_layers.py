@@ -36,7 +36,7 @@ import numpy as np
 
 from lab.core.executor import Trial, add_executor_arguments
 from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED
-from lab.studies.bench_common import report_study, run_trial_study
+from lab.studies.bench_common import cell, report_study, run_trial_study, study_heading
 
 FAULT_OFFSET_M = 0.006                     # 1 mm beyond the 5 mm tolerance
 FAULT_ROTATION_RAD = math.radians(1.5)     # 0.5 deg beyond 1 deg
@@ -195,10 +195,7 @@ def aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def to_markdown(res: dict[str, Any]) -> str:
-    def f(v: Any, spec: str = ".2f") -> str:
-        return "—" if v is None else format(v, spec)
-
-    lines = [f"`{res['command']}` ({res['runs']} runs, {res['wall_s']:.0f} s)", "",
+    lines = [study_heading(res), "",
              "| N | layer | runs | modules | unverified | uncertain | false flags | faults flagged | re-planned | "
              "error median / max (mm) | max of `ok` (mm) | \\|err\\|/1σ median | views / module | run s / module | "
              "SLAM step (ms) | peak memory (MB) |",
@@ -208,10 +205,10 @@ def to_markdown(res: dict[str, Any]) -> str:
         lines.append(
             f"| {r['n']} | {r['layer']} | {r['runs']} | {r['modules']} | {r['unverified']} | {r['uncertain']} | "
             f"{r['false_flags']}/{r['good']} | {r['faults_caught']}/{r['faults']} | {r['replanned']} | "
-            f"{f(r['error_mm_median'])} / {f(r['error_mm_max'])} | {f(r.get('ok_error_mm_max'))} | {f(r['ratio_median'])} | "
-            f"{f(r['views_per_module'], '.1f')} | {f(r.get('wall_s_per_module') if whole else None, '.1f')} | "
-            f"{f(r.get('slam_update_ms_median') if whole else None, '.1f')} | "
-            f"{f(r.get('peak_rss_mb') if whole else None, '.0f')} |")
+            f"{cell(r['error_mm_median'])} / {cell(r['error_mm_max'])} | {cell(r.get('ok_error_mm_max'))} | {cell(r['ratio_median'])} | "
+            f"{cell(r['views_per_module'], '.1f')} | {cell(r.get('wall_s_per_module') if whole else None, '.1f')} | "
+            f"{cell(r.get('slam_update_ms_median') if whole else None, '.1f')} | "
+            f"{cell(r.get('peak_rss_mb') if whole else None, '.0f')} |")
     return "\n".join(lines)
 
 

@@ -37,7 +37,7 @@ import numpy as np
 from lab.core.executor import Trial, add_executor_arguments
 from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED
 from lab.core.imaging import IDEAL, scenario_tables
-from lab.studies.bench_common import report_study, run_trial_study, study_size
+from lab.studies.bench_common import cell, report_study, run_trial_study, study_heading, study_size
 
 # A scenario's [camera] and [tags] for each camera quality (omitted keys keep the rig's defaults).
 CAMERAS: dict[str, str] = {
@@ -199,10 +199,7 @@ def aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def to_markdown(res: dict[str, Any]) -> str:
-    def f(v: Any, spec: str = ".2f") -> str:
-        return "—" if v is None else format(v, spec)
-
-    lines = [f"`{res['command']}` ({res['runs']} runs, {res['wall_s']:.0f} s)", "",
+    lines = [study_heading(res), "",
              "| camera | rig error | runs | false flags | undecided good | faults flagged | faults passed ok | "
              "error median / max (mm) | 1σ median (mm) | RMSE / bound | \\|err\\|/1σ median | > 3σ | NEES mean (3) | "
              "survey NEES mount / base (6) | corner px true / measured | SLAM step (ms) | run (s) |",
@@ -211,10 +208,10 @@ def to_markdown(res: dict[str, Any]) -> str:
         lines.append(
             f"| {r['camera']} | {r['rig_error_scale']:g}x | {r['runs']} | {r['false_flags']}/{r['good_modules']} "
             f"({100 * r['false_flag_rate']:.1f} %) | {r['undecided']} | {r['faults_caught']}/{r['faults']} | "
-            f"{r['faults_passed']} | {f(r['error_mm_median'])} / {f(r['error_mm_max'])} | {f(r['sigma_mm_median'])} | "
-            f"{f(r['rmse_over_bound'])} | {f(r['ratio_median'])} | {f(None if r['ratio_beyond_3'] is None else 100 * r['ratio_beyond_3'], '.1f')} % | "
-            f"{f(r['nees_mean'], '.1f')} | {f(r['survey_nees_mount_mean'], '.1f')} / {f(r['survey_nees_base_mean'], '.1f')} | "
-            f"{f(r['corner_rms_px_true'], '.3f')} / {f(r['corner_sigma_px_measured'], '.3f')} | "
+            f"{r['faults_passed']} | {cell(r['error_mm_median'])} / {cell(r['error_mm_max'])} | {cell(r['sigma_mm_median'])} | "
+            f"{cell(r['rmse_over_bound'])} | {cell(r['ratio_median'])} | {cell(None if r['ratio_beyond_3'] is None else 100 * r['ratio_beyond_3'], '.1f')} % | "
+            f"{cell(r['nees_mean'], '.1f')} | {cell(r['survey_nees_mount_mean'], '.1f')} / {cell(r['survey_nees_base_mean'], '.1f')} | "
+            f"{cell(r['corner_rms_px_true'], '.3f')} / {cell(r['corner_sigma_px_measured'], '.3f')} | "
             f"{r['slam_update_ms_median']:.1f} | {r['wall_s_median']:.0f} |")
     return "\n".join(lines)
 
