@@ -617,7 +617,7 @@ class BorgProcedure:
         # the next view (in view order; the recorder is thread-safe): the round then costs its moves
         # and one detection, not its moves plus every detection
         pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="borg-detect")
-        pending: list[Future[dict[str, Any]]] = []
+        pending: list[Future[tuple[dict[str, Any], list[Any]]]] = []
         try:
             for j, view in enumerate(views_planned):
                 k = first_k + j
@@ -628,15 +628,16 @@ class BorgProcedure:
                 pending.append(pool.submit(self._view_record, rec, view, frame, world_T_camera, truth,
                                            {"module": name, "step": spec.index, "attempt": attempt, "round": rnd,
                                             "view": k}))
-            views = [f.result() for f in pending]       # a worker's exception is raised here
+            done = [f.result() for f in pending]        # a worker's exception is raised here
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
+        views = [record for record, _ in done]
         for record in views:
             self._take_truth(record)
         self.views_done.extend(views)
         self._check_rig_agrees(views)
         t0 = time.perf_counter()
-        self.measure.add_step(name, views)
+        self.measure.add_step(name, views, detections=[parsed for _, parsed in done])
         solve_s = time.perf_counter() - t0
         self._check_structure_fits()
         rec.log_metric("slam/update_s", solve_s, "s")
@@ -652,9 +653,11 @@ class BorgProcedure:
                 "camera": world.camera, "tags": world.tags_in_view()}
 
     def _view_record(self, rec: Any, view: View, frame: Any, world_T_camera: Any, truth: dict[str, Any] | None,
-                     ids: dict[str, Any]) -> dict[str, Any]:
-        """Detect one view's frame, log it, and make its record (what the graph, the checkpoint and a
-        resume read)."""
+                     ids: dict[str, Any]) -> tuple[dict[str, Any], list[Any]]:
+        """Detect one view's frame, log it, and make its record (what the checkpoint and a resume
+        read), with the detections the graph takes parsed back from that record: the same numbers
+        a resume reads (the pose goes through its quaternion), parsed here, while the devices
+        move, rather than in the SLAM step."""
         t = frame.t_s
         rec.log_image(topics.CAMERA_IMAGE, frame.image, t, "camera", format=IMAGE_FORMAT)
         world_T_structure = self.model.world_T_structure(view.turntable_rad)
@@ -672,7 +675,7 @@ class BorgProcedure:
             record["truth"] = {"structure_T_camera": truth["structure_T_camera"].matrix().tolist(),
                                "corner_sq_px2": _corner_errors_sq(truth["camera"], truth["tags"], detections,
                                                                   self.measure.detector_camera)}
-        return record
+        return record, self.measure.detections_from_json(record["detections"])
 
     def _check_rig_agrees(self, views: list[dict[str, Any]]) -> None:
         """Before the round's views reach the graph: the rim tags where the calibration puts them,
@@ -799,7 +802,7 @@ class BorgProcedure:
             views = by_round[(step, attempt, rnd)]
             if attempt > 1 and rnd == 0:
                 self.measure.redeploy(views[0]["module"])
-            self.measure.add_step(views[0]["module"], views, replay=True)
+            self.measure.add_step(views[0]["module"], views)
             if i + 1 == len(rounds) or rounds[i + 1][:2] != (step, attempt):
                 # as the live run did once the step's verdict was final (a step cut off mid-way is
                 # re-run from its start, so every replayed step was finished)

@@ -81,18 +81,22 @@ class Measurement:
                             d.ambiguity_ratio if math.isfinite(d.ambiguity_ratio) else 0.0) for d in detections])
 
     # ---- one step ------------------------------------------------------------------------------
-    def add_step(self, module: str, views: list[dict[str, Any]], replay: bool = False) -> None:
+    def add_step(self, module: str, views: list[dict[str, Any]],
+                 detections: list[list[Detection]] | None = None) -> None:
         """A step's views (or a further round of them for the same module).  The module's tags are
         held out of the semantic relations until `finish`: its verdict is read from the
-        measurement alone, however many rounds of views it takes."""
+        measurement alone, however many rounds of views it takes.  `detections`: each view's
+        `detections_from_json(view["detections"])`, when the caller has parsed them already."""
         if module not in self.placed:
             self.placed.append(module)
         self.last_views = []
-        for v in views:
+        if detections is None:
+            detections = [self.detections_from_json(v["detections"]) for v in views]
+        for v, seen in zip(views, detections, strict=True):
             structure_T_camera = Pose3(np.asarray(v["structure_T_camera"]))
             motion = ViewMotion(float(v["turntable_rad"]), tuple(float(x) for x in v["stewart_pose"]),
                                 float(v.get("lift_m", 0.0)))
-            self.last_views.append(self.slam.add_view(structure_T_camera, self.detections_from_json(v["detections"]),
+            self.last_views.append(self.slam.add_view(structure_T_camera, seen,
                                                       motion=motion if self.rig is not None else None))
         self._measured[module] = self.slam.update(snapshot=self.model.module_by_name[module].tags, hold=True)
         self._eliminate()
