@@ -30,6 +30,7 @@ from drivers.transport import HttpTransport
 from lab.core.comms import CommsRecord, CommsSink, null_sink
 from lab.core.config import CameraConfig
 from lab.core.errors import UserError
+from lab.core.files import read_json
 
 CALIBRATION_FORMAT = "lab-camera-calibration"
 SNAPSHOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -108,14 +109,7 @@ def parse_calibration(data: Any, source: str) -> Intrinsics:
 
 
 def load_calibration(path: str | Path) -> Intrinsics:
-    p = Path(path)
-    try:
-        data = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise UserError(f"camera calibration {p}: no such file") from None
-    except json.JSONDecodeError as exc:
-        raise UserError(f"camera calibration {p}: not valid JSON: {exc}") from None
-    return parse_calibration(data, str(p))
+    return parse_calibration(read_json(path, "camera calibration"), str(path))
 
 
 def save_calibration(path: str | Path, intrinsics: Intrinsics, camera: str = "camera", source: str = "") -> Path:

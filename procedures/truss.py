@@ -13,7 +13,6 @@ per step, so a step re-run after an interruption draws the same numbers.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,7 @@ import numpy as np
 from estimation.truss_geometry import DegenerateBaseError, Plan, Step, place_step
 from estimation.truss_simulation import make_estimator
 from lab.core.errors import UserError
+from lab.core.files import read_json
 from lab.core.recorder import messages as m
 from lab.core.recorder import topics
 from lab.core.structures.trusses import build_truss
@@ -38,13 +38,11 @@ _STREAM_IPJR = 7200           # RNG stream of the simulated IPJRs' noise (per st
 
 def load_plan(path: str | Path) -> Plan:
     """A plan written by `lab plan truss NAME --json`."""
+    doc = read_json(path, "plan")
     try:
-        doc = json.loads(Path(path).read_text())
         steps = [Step(int(s["node"]), tuple(int(b) for b in s.get("base", ()))) for s in doc["steps"]]
         return Plan(tuple(steps))
-    except FileNotFoundError:
-        raise UserError(f"plan {path}: no such file") from None
-    except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
+    except (KeyError, TypeError, ValueError) as exc:
         raise UserError(f"plan {path}: not a plan from `lab plan truss --json`: {exc}") from None
 
 

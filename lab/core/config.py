@@ -12,7 +12,6 @@ Everything here is data: loading a rig opens no port.  Units inside the returned
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
@@ -21,6 +20,7 @@ from typing import Any, Iterator, Literal
 import numpy as np
 
 from lab.core.errors import UserError
+from lab.core.files import read_toml
 from lab.core.geometry import Pose3, from_xyzrpy
 from lab.core import rig_error as rig_errors   # the record is RigError too, like this module's exception
 from lab.core.imaging import RIG_CAMERA_KEYS, Imaging, parse_imaging
@@ -383,19 +383,7 @@ def load_rig(path: str | Path | None = None) -> Rig:
         p = default_rig_path()
     else:
         p = Path(path)
-    try:
-        text = p.read_text()
-    except FileNotFoundError:
-        raise RigError(f"rig {p}: no such file") from None
-    except UnicodeDecodeError:
-        raise RigError(f"rig {p}: not a text file (not UTF-8)") from None
-    except OSError as exc:
-        raise RigError(f"rig {p}: cannot read it: {exc.strerror or exc}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise RigError(f"rig {p}: not valid TOML: {exc}") from None
-    return parse_rig(data, source=str(p), base_dir=p.parent)
+    return parse_rig(read_toml(p, "rig", RigError), source=str(p), base_dir=p.parent)
 
 
 def parse_rig(data: dict[str, Any], source: str = "<dict>", base_dir: Path | None = None) -> Rig:

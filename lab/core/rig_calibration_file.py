@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from lab.core.errors import UserError
+from lab.core.files import read_json
 from lab.core.geometry import Pose3, from_xyzrpy, to_xyzrpy
 from lab.core.rig_calibration_check import POSE_UNITS, check_covariance
 
@@ -156,14 +157,7 @@ def _pose(d: Any, where: str, src: str) -> tuple[Pose3, np.ndarray | None]:
 
 
 def load_rig_calibration(path: str | Path) -> RigCalibration:
-    p = Path(path)
-    try:
-        data = json.loads(p.read_text())
-    except FileNotFoundError:
-        raise UserError(f"rig calibration {p}: no such file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UserError(f"rig calibration {p}: not a readable JSON file ({exc})") from None
-    return rig_calibration_from_json(data, str(p))
+    return rig_calibration_from_json(read_json(path, "rig calibration"), str(path))
 
 
 def rig_calibration_from_json(data: Any, p: str = "<json>") -> RigCalibration:

@@ -19,12 +19,12 @@ import json
 import math
 import os
 import stat
-import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
 from lab.core.errors import UserError
+from lab.core.files import read_toml
 from lab.core.verdicts import VERDICTS, tally
 
 ENV_ROOT = "LAB_RUNS"
@@ -48,10 +48,7 @@ def load_config(env: dict[str, str] | None = None) -> dict[str, Any]:
         if (os.environ if env is None else env).get(ENV_CONFIG):
             raise UserError(f"{ENV_CONFIG}={path}: no such file")
         return {}
-    try:
-        data = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not a TOML file ({exc})") from None
+    data = read_toml(path, "user config")
     unknown = sorted(set(data) - CONFIG_KEYS)
     if unknown:
         raise UserError(f"{path}: unknown key {unknown[0]!r} (known: {', '.join(sorted(CONFIG_KEYS))})")

@@ -5,12 +5,12 @@ error naming the key and the problem."""
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from lab.core.errors import UserError
+from lab.core.files import read_toml
 from lab.core.imaging import parse_imaging
 from lab.core.rig_error import RigError, parse_rig_error
 
@@ -214,15 +214,4 @@ def load_scenario(path: str | Path | None) -> Scenario:
     """Read a scenario file; None gives the default (seed 0, no faults, the papers' noise)."""
     if path is None:
         return Scenario()
-    p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise UserError(f"scenario {p}: no such file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise UserError(f"scenario {p}: not valid TOML: {exc}") from None
-    except UnicodeDecodeError:
-        raise UserError(f"scenario {p}: not a text file (not UTF-8)") from None
-    except OSError as exc:
-        raise UserError(f"scenario {p}: cannot read it: {exc.strerror or exc}") from None
-    return parse_scenario(data, str(p))
+    return parse_scenario(read_toml(path, "scenario"), str(path))
