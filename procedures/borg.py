@@ -186,18 +186,21 @@ class BorgProcedure:
 
     @cached_property
     def rig_survey_plan(self):
-        from procedures.rig_survey import plan_rig_survey, survey_lift
+        from procedures.rig_survey import plan_rig_survey, survey_angle_step, survey_lift
 
         rig = self.bench.rig
+        # a bigger turntable's rim in finer turntable steps (survey_angle_step)
+        step = survey_angle_step(self.model.turntable.radius_m)
         # a turntable sweep per platform pose: the shortest survey for the same views
         plan = plan_rig_survey(lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable,
-                               (rig.turntable.min_rad, rig.turntable.max_rad), order="poses")
+                               (rig.turntable.min_rad, rig.turntable.max_rad), angle_step_rad=step, order="poses")
         # a bigger turntable's rim is seen from lower down (0 for the 3x3x3's, and without a lift)
         lift = survey_lift(self.planner, plan, self.planner.lift_limits_m)
         if not lift:
             return plan
         return plan_rig_survey(lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable,
-                               (rig.turntable.min_rad, rig.turntable.max_rad), order="poses", lift_m=lift)
+                               (rig.turntable.min_rad, rig.turntable.max_rad), angle_step_rad=step, order="poses",
+                               lift_m=lift)
 
     def unobservable_lines(self) -> list[str]:
         """One line per module the rig cannot observe: which tags, where."""

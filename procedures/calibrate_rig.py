@@ -55,7 +55,7 @@ class RigCalibrationProcedure:
     name = "calibrate_rig"
 
     def __init__(self, bench: Bench, out: Path, *, plan: Any = None, limits: Any = None,
-                 angle_step_rad: float | None = None) -> None:
+                 angle_step_rad: float | None = None, borg_n: int | None = None) -> None:
         from drivers.stewart_kinematics import StewartKinematics
         from estimation.rig_model import RigGeometry
         from lab.core.structures.borg import build_borg
@@ -73,11 +73,13 @@ class RigCalibrationProcedure:
         self.bench = bench
         self.out = Path(out)
         self.limits = limits
-        # the turntable tags' design poses come from the BORG model the bench is built for
-        size = rig.sim.borg_n if rig.sim is not None else 3
+        # the turntable tags' design poses come from the BORG model the rig is calibrated for (its
+        # turntable grows with N; the bench stands the base at that BORG's station: open_bench)
+        size = borg_n if borg_n is not None else rig.sim.borg_n if rig.sim is not None else 3
         self.model = build_borg(size)
         self.kinematics = StewartKinematics(rig.stewart.geometry)
-        step = rig_survey.ANGLE_STEP_RAD if angle_step_rad is None else float(angle_step_rad)
+        step = (rig_survey.survey_angle_step(self.model.turntable.radius_m) if angle_step_rad is None
+                else float(angle_step_rad))
         self.survey_plan = plan if plan is not None else rig_survey.plan_rig_survey(
             lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable, (rig.turntable.min_rad, rig.turntable.max_rad),
             poses=rig_survey.SURVEY_POSES, angle_step_rad=step, order="poses")

@@ -24,6 +24,7 @@ import numpy as np
 
 from estimation.rig_calibration_solve import CalibrationView, TagSighting
 from estimation.rig_model import ViewMotion
+from lab.core.structures.borg import SPACING_M, turntable_radius_m
 from procedures.moves import Move, move_together
 
 _D = math.radians
@@ -51,6 +52,26 @@ SURVEY_POSES: tuple[tuple[float, ...], ...] = (
     (-0.06, 0.0, -0.05, 0.0, _D(4), 0.0),
 )
 ANGLE_STEP_RAD = _D(30)
+# the rim arc between two survey angles on the 3x3x3's turntable (1.21 m: 0.63 m), which the poses
+# above were tuned on (survey_angle_step)
+_TUNED_ARC_M = turntable_radius_m(3 * SPACING_M) * ANGLE_STEP_RAD
+# finer steps, each a divisor of the rim tags' 30 deg spacing
+_FINER_STEPS_DEG = (15.0, 10.0, 7.5, 6.0, 5.0)
+
+
+def survey_angle_step(rim_radius_m: float) -> float:
+    """The turntable step of a rig survey for a rim of this radius: 30 deg (the rim tags' spacing) up
+    to the 3x3x3's rim; on a bigger rim the largest divisor of 30 deg whose arc is no longer than
+    the 3x3x3's.  A step of one tag spacing turns the next tag into the place the last one was: at
+    one platform pose every view sees the rim in the same place, and where a view holds only one
+    rim tag (a 5x5x5 from its near station, an 8x8x8 from its far one) the base's rotation is then
+    hardly seen (1 sigma 0.1 deg, 1.9 mm off the truth at N = 5; 15 deg: 0.008 deg, 0.20 mm)."""
+    if rim_radius_m * ANGLE_STEP_RAD <= _TUNED_ARC_M * (1 + 1e-9):
+        return ANGLE_STEP_RAD
+    for deg in _FINER_STEPS_DEG:
+        if rim_radius_m * _D(deg) <= _TUNED_ARC_M * (1 + 1e-9):
+            return _D(deg)
+    return _D(_FINER_STEPS_DEG[-1])
 
 
 @dataclass(frozen=True)

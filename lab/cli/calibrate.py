@@ -78,8 +78,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"rig calibration file to write (default {DEFAULT_RIG_OUT}); point the rig's [calibration] "
                         f"file at it")
     r.add_argument("--force", action="store_true", help="replace --out if it exists")
-    r.add_argument("--angle-step-deg", type=float, default=30.0, metavar="DEG",
-                   help="turntable step between survey angles (default 30: the rim tags' spacing; larger is a "
+    r.add_argument("--n", type=int, default=None, metavar="N",
+                   help="the BORG size the rig is calibrated for, 2..10 (default: the rig's [sim] borg_n, else 3): "
+                        "its turntable's rim tags, and the station the Stewart base stands at for it")
+    r.add_argument("--angle-step-deg", type=float, default=None, metavar="DEG",
+                   help="turntable step between survey angles (default 30, the rim tags' spacing, up to the 3x3x3's "
+                        "turntable; finer on a bigger one: 15 for N = 4..6, 10 for 7..9, 7.5 for 10; larger is a "
                         "quicker, coarser survey)")
     r.add_argument("--run-dir", metavar="DIR", help="where the run's MCAP log goes (default <runs root>/calibrate-rig-<time>, "
                                                           "the root as for lab run)")
@@ -278,7 +282,7 @@ def _rig(args: argparse.Namespace) -> int:
         raise UserError(f"--out {out} already exists; choose another file or add --force to replace it")
     if args.speedup is not None and not args.speedup > 0:
         raise UserError(f"--speedup {args.speedup}: must be a positive factor")
-    if not 5.0 <= args.angle_step_deg <= 180.0:
+    if args.angle_step_deg is not None and not 5.0 <= args.angle_step_deg <= 180.0:
         raise UserError(f"--angle-step-deg {args.angle_step_deg}: must be 5..180 degrees")
     from lab.core.runs import runs_root
 
@@ -291,9 +295,13 @@ def _rig(args: argparse.Namespace) -> int:
         check_output_dir(run_dir, "--run-dir" if args.run_dir else "the run directory (--run-dir)")
         if (run_dir / runner.RUN_FILE).exists():
             raise UserError(f"--run-dir {run_dir} already holds a run; choose another")
-    bench = open_bench(args.rig, args.scenario, speedup=args.speedup, only=None)
+    from lab.cli.run import check_borg_n
+
+    n = check_borg_n(args.n)
+    bench = open_bench(args.rig, args.scenario, speedup=args.speedup, only=None, borg_n=n)
     try:
-        proc = RigCalibrationProcedure(bench, out, angle_step_rad=math.radians(args.angle_step_deg))
+        step = None if args.angle_step_deg is None else math.radians(args.angle_step_deg)
+        proc = RigCalibrationProcedure(bench, out, angle_step_rad=step, borg_n=n)
     except BaseException:
         bench.close()
         raise

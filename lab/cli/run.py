@@ -11,6 +11,17 @@ from typing import Any
 from lab.core.survey_budget import MAX_VIEWS, MAX_VIEWS_RANGE, SIGMA_TARGET_MM, SIGMA_TARGET_MM_MAX
 
 
+
+def check_borg_n(n: int | None) -> int | None:
+    """`--n`, refused before a simulated bench is built for it."""
+    from lab.core.structures.borg import MAX_N
+
+    if n is not None and not 2 <= n <= MAX_N:
+        from lab.core.errors import UserError
+
+        raise UserError(f"--n {n}: the BORG size must be an integer from 2 to {MAX_N}")
+    return n
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run an assembly procedure (simulated devices with the default rig)")
     rsub = p.add_subparsers(dest="procedure", metavar="PROCEDURE")
@@ -127,14 +138,7 @@ def _build(procedure: str, params: dict[str, Any]):
     """(procedure object, bench, structure name) from the CLI parameters."""
     from procedures.setup import open_bench
 
-    n = params.get("n") if procedure == "borg" else None
-    if n is not None:
-        from lab.core.structures.borg import MAX_N
-
-        if not 2 <= n <= MAX_N:       # before the simulated bench is built for it
-            from lab.core.errors import UserError
-
-            raise UserError(f"--n {n}: the BORG size must be an integer from 2 to {MAX_N}")
+    n = check_borg_n(params.get("n")) if procedure == "borg" else None
     bench = open_bench(params.get("rig"), params.get("scenario"), speedup=params.get("speedup"), borg_n=n)
     try:
         if procedure == "truss":
