@@ -24,11 +24,7 @@ trials are journaled in --out/trials.jsonl: the same command after an interrupti
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import subprocess
-import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,7 +33,7 @@ import numpy as np
 
 from lab.core.executor import Trial, add_executor_arguments
 from lab.core.verdicts import FLAGGED, UNCERTAIN, UNVERIFIED
-from lab.studies.bench_common import cell, report_study, run_trial_study, study_heading, study_size
+from lab.studies.bench_common import cell, report_study, run_borg, run_trial_study, study_heading, study_size
 
 # Faults among the first 9 modules, so --quick sees them all: a partial deployment and a 15 mm
 # offset must be flagged, a displaced tag rejected (its module unverified), a 2 mm offset passed.
@@ -96,27 +92,18 @@ def _scenario(seed: int, scale: float) -> str:
 
 
 def trial(out: Path, seed: int, scale: float, mode: str, modules: int, speedup: float) -> dict[str, Any]:
-    from lab.studies.bench_run import _median_metric
-
-    d = out / f"{mode}-x{scale:g}-seed{seed}"
     sc = out / f"scenario-x{scale:g}-seed{seed}.toml"
     sc.write_text(_scenario(seed, scale))
-    # --replace: a trial re-run over an earlier study's directory starts afresh
-    cmd = [sys.executable, "-m", "lab", "run", "borg", "--auto", "--quiet", "--on-flag", "continue", "--scenario",
-           str(sc), "--modules", str(modules), "--speedup", str(speedup), "--out", str(d), "--replace", *MODES[mode]]
-    t0 = time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if not (d / "summary.json").exists():
-        raise RuntimeError(f"{' '.join(cmd)} failed: {r.stderr.strip()[-500:]}")
-    s = json.loads((d / "summary.json").read_text())
+    run = run_borg(["--scenario", str(sc), "--modules", str(modules), "--speedup", str(speedup), *MODES[mode]],
+                   out / f"{mode}-x{scale:g}-seed{seed}")
+    s = run.summary
     if s["result"] == "aborted":
         # a Ctrl-C at the terminal reaches the run too: an interrupted run is not a finished trial
-        raise RuntimeError(f"{' '.join(cmd)} was interrupted: {s.get('reason', '')}")
+        raise RuntimeError(f"{' '.join(run.cmd)} was interrupted: {s.get('reason', '')}")
     mods = s["modules"]
     good = [m for m in mods if m["name"] not in EXPECT]
     res: dict[str, Any] = {
-        "seed": seed, "scale": scale, "mode": mode, "result": s["result"], "wall_s": wall,
+        "seed": seed, "scale": scale, "mode": mode, "result": s["result"], "wall_s": run.wall_s,
         "good": len(good), "false_flags": sum(m["verdict"] == FLAGGED for m in good),
         "false_flagged": [m["name"] for m in good if m["verdict"] == FLAGGED],
         # a good module the run could not decide (uncertain) or could not see (unverified)
@@ -129,7 +116,7 @@ def trial(out: Path, seed: int, scale: float, mode: str, modules: int, speedup: 
         "bound_rms_m": [m["bound_position_rms_m"] for m in good if m.get("bound_position_rms_m") is not None],
         "views": s.get("views"),
         "corner_rms_px": s.get("corner_rms_px"),
-        "slam_update_s_median": _median_metric(d / "run.mcap", "slam/update_s"),
+        "slam_update_s_median": run.slam_update_s_median,
     }
     survey = s.get("rig_survey")
     if survey:

@@ -5,10 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
+
+import numpy as np
 
 from lab.core.executor import Trial, open_study, without_executor_args
 from lab.core.executor.journal import finite_values
@@ -23,6 +27,54 @@ def save_figure(fig, out_dir: str, name: str, dpi: int = 110) -> str:
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
+
+
+def unit_vector(rng: np.random.Generator) -> np.ndarray:
+    """A direction drawn uniformly on the sphere (a fault's seeded offset or rotation axis)."""
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def median_metric(path: Path, name: str) -> float:
+    """The median of a run's metric (`slam/update_s`) from its MCAP; nan if it logged none."""
+    from lab.core.runs import run_metrics
+
+    vals = sorted(run_metrics(path).get(name, ("", []))[1])
+    return vals[len(vals) // 2] if vals else float("nan")
+
+
+@dataclass(frozen=True)
+class BorgRun:
+    cmd: list[str]
+    summary: dict[str, Any]
+    wall_s: float
+    peak_rss_mb: float | None        # measured with a log only
+    slam_update_s_median: float
+
+
+def run_borg(args: Sequence[str], out: Path, log: Path | None = None) -> BorgRun:
+    """One trial of a study: a real `lab run borg --auto --quiet --on-flag continue ARGS`, in a process
+    of its own, into `out` (`--replace`: a trial re-run over an earlier study's directory starts
+    afresh).  With `log` its output goes there and its peak resident memory is measured; without,
+    a run that wrote no summary is reported with the tail of its stderr."""
+    cmd = [sys.executable, "-m", "lab", "run", "borg", "--auto", "--quiet", "--on-flag", "continue", *args,
+           "--out", str(out), "--replace"]
+    t0 = time.perf_counter()
+    peak_mb = None
+    if log is not None:
+        with open(log, "w") as f:
+            p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT)
+            _, status, usage = os.wait4(p.pid, 0)
+        code, peak_mb = os.waitstatus_to_exitcode(status), usage.ru_maxrss / 1024.0
+        failure = f"failed (exit {code}): see {log}"
+    else:
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        failure = f"failed: {r.stderr.strip()[-500:]}"
+    wall = time.perf_counter() - t0
+    if not (out / "summary.json").exists():
+        raise RuntimeError(f"{' '.join(cmd)} {failure}")
+    summary = json.loads((out / "summary.json").read_text())
+    return BorgRun(cmd, summary, wall, peak_mb, median_metric(out / "run.mcap", "slam/update_s"))
 
 
 def cell(value: Any, spec: str = ".2f") -> str:

@@ -22,12 +22,7 @@ study (N = 3..10 x 5 seeds) is hours of CPU; `--quick` is N = 3 and 4, one seed.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import os
-import subprocess
-import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,7 +31,7 @@ import numpy as np
 
 from lab.core.executor import Trial, add_executor_arguments
 from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED
-from lab.studies.bench_common import cell, report_study, run_trial_study, study_heading
+from lab.studies.bench_common import cell, report_study, run_borg, run_trial_study, study_heading, unit_vector
 
 FAULT_OFFSET_M = 0.006                     # 1 mm beyond the 5 mm tolerance
 FAULT_ROTATION_RAD = math.radians(1.5)     # 0.5 deg beyond 1 deg
@@ -54,11 +49,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report", metavar="JSON", help="print the tables of an earlier (or interrupted) study's "
                                                    "layers.json instead of running one")
     add_executor_arguments(p)
-
-
-def _unit(rng: np.random.Generator) -> np.ndarray:
-    v = rng.normal(size=3)
-    return v / np.linalg.norm(v)
 
 
 def layer_of(model: Any, name: str) -> int:
@@ -88,11 +78,11 @@ def plan_faults(n: int, seed: int) -> dict[str, tuple[str, Any]]:
                 break
             pick = str(rng.choice(free))
             if kind == "offset":
-                out[pick] = ("offset", [float(x) for x in FAULT_OFFSET_M * _unit(rng)])
+                out[pick] = ("offset", [float(x) for x in FAULT_OFFSET_M * unit_vector(rng)])
             elif kind == "rotation":
-                out[pick] = ("rotation", [float(x) for x in FAULT_ROTATION_RAD * _unit(rng)])
+                out[pick] = ("rotation", [float(x) for x in FAULT_ROTATION_RAD * unit_vector(rng)])
             else:
-                out[pick] = ("good", [float(x) for x in GOOD_OFFSET_M * _unit(rng)])
+                out[pick] = ("good", [float(x) for x in GOOD_OFFSET_M * unit_vector(rng)])
     return out
 
 
@@ -108,33 +98,17 @@ def scenario(seed: int, faults: dict[str, tuple[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _run(cmd: list[str], log: Path) -> tuple[int, float]:
-    """Run `cmd`, its output to `log`; (exit code, peak resident memory in MB of that process)."""
-    with open(log, "w") as f:
-        p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT)
-        _, status, usage = os.wait4(p.pid, 0)
-        p.returncode = os.waitstatus_to_exitcode(status)
-    return p.returncode, usage.ru_maxrss / 1024.0
-
-
 def trial(out: Path, n: int, seed: int, speedup: float) -> dict[str, Any]:
     from lab.core.structures.borg import build_borg
-    from lab.studies.bench_run import _median_metric
 
-    d = out / f"n{n}-seed{seed}"
     faults = plan_faults(n, seed)
     sc = out / f"scenario-n{n}-seed{seed}.toml"
     sc.write_text(scenario(seed, faults))
-    cmd = [sys.executable, "-m", "lab", "run", "borg", "--n", str(n), "--auto", "--quiet", "--on-flag", "continue",
-           "--scenario", str(sc), "--speedup", str(speedup), "--out", str(d), "--replace"]
-    t0 = time.perf_counter()
-    code, peak_mb = _run(cmd, out / f"n{n}-seed{seed}.log")
-    wall = time.perf_counter() - t0
-    if not (d / "summary.json").exists():
-        raise RuntimeError(f"{' '.join(cmd)} failed (exit {code}): see {out / f'n{n}-seed{seed}.log'}")
-    s = json.loads((d / "summary.json").read_text())
+    run = run_borg(["--n", str(n), "--scenario", str(sc), "--speedup", str(speedup)], out / f"n{n}-seed{seed}",
+                   log=out / f"n{n}-seed{seed}.log")
+    s = run.summary
     if s["result"] != "completed":
-        raise RuntimeError(f"{' '.join(cmd)} ended {s['result']}: {s.get('reason', '')}")
+        raise RuntimeError(f"{' '.join(run.cmd)} ended {s['result']}: {s.get('reason', '')}")
     model = build_borg(n)
     rows = []
     for m in s["modules"]:
@@ -143,9 +117,9 @@ def trial(out: Path, n: int, seed: int, speedup: float) -> dict[str, Any]:
                      "verdict": m["verdict"], "views": m.get("views"),
                      "error_m": m.get("position_error_m"), "sigma_m": m.get("sigma_position_m"),
                      "replanned": "re-planned" in (m.get("reason") or "")})
-    return {"n": n, "seed": seed, "result": s["result"], "wall_s": wall, "modules": rows,
-            "peak_rss_mb": peak_mb, "views": s.get("views"),
-            "slam_update_s_median": _median_metric(d / "run.mcap", "slam/update_s")}
+    return {"n": n, "seed": seed, "result": s["result"], "wall_s": run.wall_s, "modules": rows,
+            "peak_rss_mb": run.peak_rss_mb, "views": s.get("views"),
+            "slam_update_s_median": run.slam_update_s_median}
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from lab.core.verdicts import FLAGGED, OK, UNVERIFIED
+from lab.studies.bench_common import median_metric
 
 SCENARIO_FAULTS = Path(__file__).resolve().parents[2] / "docs" / "scenarios" / "structure_faults.toml"
 TETRAHELIX_NOISE = "seed = 3\n[truss]\nsigma_length_m = 0.1\nsigma_measure_m = 0.01\n"
@@ -91,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
                        "rejected_tags": s["rejected_tags"],
                        "max_position_error_m": max((m["position_error_m"] or 0.0) for m in s["modules"]
                                                    if m["verdict"] == OK),
-                       "slam_update_s_median": _median_metric(borg_dir / "run.mcap", "slam/update_s")}
+                       "slam_update_s_median": median_metric(borg_dir / "run.mcap", "slam/update_s")}
     sc = out / f"tetrahelix-{stamp}.toml"
     sc.write_text(TETRAHELIX_NOISE)
     truss_dir = out / f"truss-{stamp}"
@@ -148,8 +149,3 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _median_metric(path: Path, name: str) -> float:
-    from lab.core.runs import run_metrics
-
-    vals = sorted(run_metrics(path).get(name, ("", []))[1])
-    return vals[len(vals) // 2] if vals else float("nan")

@@ -23,11 +23,7 @@ are journaled in --out/trials.jsonl, so the same command after an interruption r
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import subprocess
-import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,7 +33,8 @@ import numpy as np
 from lab.core.executor import Trial, add_executor_arguments
 from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED
 from lab.core.imaging import IDEAL, scenario_tables
-from lab.studies.bench_common import cell, report_study, run_trial_study, study_heading, study_size
+from lab.studies.bench_common import (cell, report_study, run_borg, run_trial_study, study_heading, study_size,
+                                     unit_vector)
 
 # A scenario's [camera] and [tags] for each camera quality (omitted keys keep the rig's defaults).
 CAMERAS: dict[str, str] = {
@@ -75,11 +72,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_executor_arguments(p)
 
 
-def _unit(rng: np.random.Generator) -> np.ndarray:
-    v = rng.normal(size=3)
-    return v / np.linalg.norm(v)
-
-
 def scenario(seed: int, scale: float, camera: str) -> str:
     """The trial's scenario: seed, rig errors, camera, faults (directions seeded by the trial's seed)."""
     from lab.core.config import load_rig
@@ -94,35 +86,27 @@ def scenario(seed: int, scale: float, camera: str) -> str:
     for module, kind in FAULT_MODULES.items():
         lines += ["", "[[borg.fault]]", 'kind = "module_offset"', f'module = "{module}"']
         if kind == "offset":
-            lines.append(f"offset_m = {[float(x) for x in FAULT_OFFSET_M * _unit(rng)]}")
+            lines.append(f"offset_m = {[float(x) for x in FAULT_OFFSET_M * unit_vector(rng)]}")
         else:
-            lines.append(f"rotation_rad = {[float(x) for x in FAULT_ROTATION_RAD * _unit(rng)]}")
+            lines.append(f"rotation_rad = {[float(x) for x in FAULT_ROTATION_RAD * unit_vector(rng)]}")
     return "\n".join(lines) + "\n\n" + CAMERAS[camera]
 
 
 def trial(out: Path, seed: int, scale: float, camera: str, modules: int, speedup: float) -> dict[str, Any]:
-    from lab.studies.bench_run import _median_metric
-
-    d = out / f"{camera}-x{scale:g}-seed{seed}"
     sc = out / f"scenario-{camera}-x{scale:g}-seed{seed}.toml"
     sc.write_text(scenario(seed, scale, camera))
-    cmd = [sys.executable, "-m", "lab", "run", "borg", "--auto", "--quiet", "--on-flag", "continue", "--scenario",
-           str(sc), "--modules", str(modules), "--speedup", str(speedup), "--out", str(d), "--replace"]
-    t0 = time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if not (d / "summary.json").exists():
-        raise RuntimeError(f"{' '.join(cmd)} failed: {r.stderr.strip()[-500:]}")
-    s = json.loads((d / "summary.json").read_text())
+    run = run_borg(["--scenario", str(sc), "--modules", str(modules), "--speedup", str(speedup)],
+                   out / f"{camera}-x{scale:g}-seed{seed}")
+    s = run.summary
     if s["result"] == "aborted":
-        raise RuntimeError(f"{' '.join(cmd)} was interrupted: {s.get('reason', '')}")
+        raise RuntimeError(f"{' '.join(run.cmd)} was interrupted: {s.get('reason', '')}")
     mods = s["modules"]
     good = [m for m in mods if m["name"] not in FAULT_MODULES]
     faults = [m for m in mods if m["name"] in FAULT_MODULES]
     read = [m for m in good if m.get("position_error_m") is not None and m.get("sigma_position_m")]
     survey = s.get("rig_survey") or {}
     return {
-        "seed": seed, "scale": scale, "camera": camera, "result": s["result"], "wall_s": wall,
+        "seed": seed, "scale": scale, "camera": camera, "result": s["result"], "wall_s": run.wall_s,
         "good": len(good), "false_flags": sum(m["verdict"] == FLAGGED for m in good),
         "false_flagged": [m["name"] for m in good if m["verdict"] == FLAGGED],
         "undecided": sum(m["verdict"] in (UNCERTAIN, UNVERIFIED) for m in good),
@@ -137,7 +121,7 @@ def trial(out: Path, seed: int, scale: float, camera: str, modules: int, speedup
         "corner_rms_px": s.get("corner_rms_px"),
         "corner_noise": s.get("corner_noise"),
         "views": s.get("views"),
-        "slam_update_s_median": _median_metric(d / "run.mcap", "slam/update_s"),
+        "slam_update_s_median": run.slam_update_s_median,
     }
 
 
