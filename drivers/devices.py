@@ -123,9 +123,16 @@ def connect(rig: Rig, sink: CommsSink = null_sink, only: Iterable[str] | None = 
         except BaseException:
             devs.claims.release_all()
             raise
-    for kind, cfg in rig.device_configs():
-        if want(cfg.name):
-            devs.add(DRIVERS[kind].open(cfg, sink))
+    try:
+        for kind, cfg in rig.device_configs():
+            if want(cfg.name):
+                devs.add(DRIVERS[kind].open(cfg, sink))
+    except BaseException:
+        # a driver refused its configuration (a camera calibration that cannot be read): the
+        # drivers opened so far are closed and every claim goes with them, or this process would
+        # own the devices until it exits
+        devs.close()
+        raise
     return devs
 
 

@@ -42,7 +42,7 @@ def test_an_unreadable_file_is_one_line_naming_it(tmp_path, what, kind):
     assert msg.startswith(f"{what} {path}: ") and says in msg and "\n" not in msg, msg
 
 
-def test_the_cli_refuses_a_directory_as_camera_calibration(lab, tmp_path):
+def test_the_cli_refuses_a_directory_as_camera_calibration_and_keeps_no_device(lab, tmp_path):
     rig = tmp_path / "rig.toml"
     from lab.core.config import default_rig_path
 
@@ -51,3 +51,8 @@ def test_the_cli_refuses_a_directory_as_camera_calibration(lab, tmp_path):
     rc, out, err = lab.main("run", "borg", "--dry-run", "--rig", str(rig))
     assert rc == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert f"camera calibration {tmp_path}: cannot read it" in err, err
+    # the devices claimed before the camera's driver refused its file are released with it: a
+    # process that goes on (a test session, a notebook) must not keep owning the bench
+    from drivers import ownership
+
+    assert ownership.held_keys() == []
