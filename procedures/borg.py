@@ -518,8 +518,7 @@ class BorgProcedure:
             for t in tags:
                 if t not in seen:
                     missed.setdefault(t, []).append(view)
-        return self.planner.adapted(camera, slam.tag_estimates(), self.measure.detector_camera[0], missed,
-                                    strut_tags=tags)
+        return self.planner.adapted(camera, slam.tag_estimates(), self.measure.detector_camera[0], missed)
 
     def _replan(self, name: str, missing: list[int], taken: list[View], budget: int) -> SurveyPlan:
         """Views for `missing` tags, none of `taken`, at most `budget`, from the adapted planner:

@@ -171,7 +171,6 @@ class SurveyPlanner:
         self._camera_of: Callable[[View], Pose3] | None = None    # an adapted planner's camera poses
         self._tag_poses: dict[int, Pose3] = {}                     # ... and tag poses (else the design)
         self._missed: dict[int, list[View]] = {}                   # ... and where tags were not seen
-        self._strut_tags: set[int] = set()                         # ... and which to check against struts
         self._facing_cache: dict[int, list[View]] = {}
         self._cover_cache: dict[View, np.ndarray] = {}
         self._ok_cache: dict[int, tuple[Sequence[View], np.ndarray]] = {}
@@ -249,8 +248,7 @@ class SurveyPlanner:
         return pose if pose is not None else self.model.tags[tag].structure_T_tag
 
     def adapted(self, structure_T_camera: Callable[[View], Pose3], tag_poses: dict[int, Pose3],
-                K: np.ndarray | None = None, missed: dict[int, list[View]] | None = None,
-                strut_tags: Iterable[int] = ()) -> "SurveyPlanner":
+                K: np.ndarray | None = None, missed: dict[int, list[View]] | None = None) -> "SurveyPlanner":
         """The same candidates (heights, turntable angles, platform poses), judged from what a run
         has learnt: each view's camera where the calibrated rig puts it (`structure_T_camera`,
         e.g. the graph's current calibration), the tags where the graph estimates them
@@ -258,9 +256,7 @@ class SurveyPlanner:
         tag -> views taken that were expected to show it and did not; a candidate from nearly the
         same place (the same lift height, the turntable within `MISSED_TURN_RAD`) is not counted
         on to show it either (what hid it -- a strut, glare, an edge of the frame the prediction
-        puts just inside -- is likely to hide it again).  `strut_tags`: tags for which a view
-        whose line of sight crosses a strut built so far (the design's, `STRUT_DIAMETER_M`) is not
-        counted on either."""
+        puts just inside -- is likely to hide it again)."""
         import copy
 
         out = copy.copy(self)
@@ -269,8 +265,6 @@ class SurveyPlanner:
         out._camera_of = structure_T_camera
         out._tag_poses = dict(tag_poses)
         out._missed = {t: list(v) for t, v in (missed or {}).items() if v}
-        # the tags it is asked about are checked against the struts built so far, too
-        out._strut_tags = set(strut_tags or ())
         if K is not None:
             out.camera = replace(self.camera, K=np.asarray(K, float))
         out._geometry_cache, out._cover_cache, out._ok_cache = {}, {}, {}
@@ -413,6 +407,27 @@ class SurveyPlanner:
         return None
 
     # ---- which views: heights and wider looks ------------------------------------------------------
+    @cached_property
+    def _lift_grid(self) -> tuple[list[float], float]:
+        """The lift heights a view may be taken at (`lift_step_m` apart over the travel) and the base
+        height (0, or the nearest end of the travel)."""
+        if self.lift_limits_m is None:
+            return [0.0], 0.0
+        lo, hi = self.lift_limits_m
+        base = min(max(0.0, lo), hi)
+        step = self.config.lift_step_m
+        return sorted({base, *(float(round(h, 6)) for h in np.arange(base, hi + 1e-9, step)),
+                       *(float(round(h, 6)) for h in np.arange(base, lo - 1e-9, -step))}), base
+
+    @cached_property
+    def _other_views(self) -> list[View]:
+        """The views of the lift's travel that are not candidates: the wider looks at the chosen
+        heights, then the standard and wider views at the heights not chosen."""
+        chosen = set(self.candidates)
+        out = [self._at(v, h) for h in self.lift_heights for v in self._wide]
+        out += [self._at(v, h) for h in self._lift_grid[0] if h not in self.lift_heights for v in self._wide]
+        return [v for v in dict.fromkeys(out) if v not in chosen]
+
     def _choose_view_sets(self) -> tuple[tuple[float, bool], ...]:
         """(lift height, wide) sets of candidate views: the fewest that see every module's tags at
         the module's own step (with the tags placed so far in front of them).  First the standard
@@ -425,14 +440,7 @@ class SurveyPlanner:
         passes for tags seen but not well (not twice from turntable angles `min_angle_separation`
         apart).  The turntable's tags count as a first step (their relations to the base modules
         tie the structure frame)."""
-        if self.lift_limits_m is None:
-            grid, base = [0.0], 0.0
-        else:
-            lo, hi = self.lift_limits_m
-            base = min(max(0.0, lo), hi)
-            step = self.config.lift_step_m
-            grid = sorted({base, *(float(round(h, 6)) for h in np.arange(base, hi + 1e-9, step)),
-                           *(float(round(h, 6)) for h in np.arange(base, lo - 1e-9, -step))})
+        grid, base = self._lift_grid
         # the turntable's tags first: they tie the structure frame to the rig (a run without a rig
         # calibration has nothing else), and a turntable wider than the camera's field below the
         # home height (N >= 4 on the sim rig) needs a lower look at them
@@ -526,6 +534,16 @@ class SurveyPlanner:
         excluded = set(exclude)
         sight = self._sight(module, placed_modules, present,
                             [v for v in self._seeing(self._facing(module), new) if v not in excluded])
+        hidden = [t for t in new if not any(t in seen for seen in sight.values())]
+        if hidden:
+            # The heights were chosen for the tags-only visibility model; struts in front can hide a
+            # tag from every one of them (the top layer's inner tags of a 10x10x10 from the lift's
+            # 4.0 m: at 4.5 m the camera looks over the struts).  The rest of the lift's travel
+            # and the wider looks, for those tags only.
+            others = [v for v in self._other_views if v not in excluded]
+            more = self._sight(module, placed_modules, present,
+                               self._seeing(self._facing(module, others), hidden))
+            sight.update({v: seen for v, seen in more.items() if set(seen) & set(hidden)})
         # requirements: each new tag seen min_sightings times; each new tag seen with a related tag;
         # the new module's tags seen together (deployables: B and T in one view)
         need_count = {t: self.config.min_sightings for t in new}
@@ -597,7 +615,10 @@ class SurveyPlanner:
 
     def _sight(self, module: str, placed_modules: Sequence[str], present: set[int],
                views: Sequence[View]) -> dict[View, list[int]]:
-        """View -> the present tags it is predicted to read, for `views`."""
+        """View -> the present tags it is predicted to read, for `views`.  The module's own tags are
+        checked against the struts built so far too (`_behind_strut`): the visibility model has
+        tags hiding tags, and a strut across a tag's face hides it as surely (at N >= 4 the top
+        layer's strut brackets sit behind the struts in front of them from many views)."""
         step = self._step_of_placed(placed_modules)
         if step is not None:
             out = {v: self._visible_at(v, step) for v in views}
@@ -606,10 +627,15 @@ class SurveyPlanner:
             out = {v: self.visible(v, present_idx) for v in views}
         if self._missed:
             out = {v: [t for t in seen if not self._missed_near(t, v)] for v, seen in out.items()}
-        if self._strut_tags:
-            segments = self._struts(placed_modules)
-            out = {v: [t for t in seen if t not in self._strut_tags or not self._behind_strut(t, v, segments)]
-                   for v, seen in out.items()}
+        segments = self._struts(placed_modules)
+        if len(segments[0]):
+            for tag in self.model.module_by_name[module].tags:
+                views_of = [v for v, seen in out.items() if tag in seen]
+                if not views_of:
+                    continue
+                for v, hidden in zip(views_of, self._behind_struts(tag, views_of, segments)):
+                    if hidden:
+                        out[v] = [t for t in out[v] if t != tag]
         return out
 
     def _struts(self, placed_modules: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -621,18 +647,45 @@ class SurveyPlanner:
         return self.model.nodes[e[:, 0]], self.model.nodes[e[:, 1]]
 
     def _behind_strut(self, tag: int, view: View, segments: tuple[np.ndarray, np.ndarray]) -> bool:
-        """Whether a strut crosses the line of sight to the tag's face (a 3x3 grid of points over
-        its black square, corners included): a strut across a tag's code or border leaves nothing
-        the detector can decode."""
+        """Whether a strut crosses the line of sight to the tag's face from `view`."""
+        return bool(self._behind_struts(tag, [view], segments)[0])
+
+    def _behind_struts(self, tag: int, views: Sequence[View], segments: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """(V,) whether a strut crosses the line of sight from each view to the tag's face (a 3x3
+        grid of points over its black square, corners included): a strut across a tag's code or
+        border leaves nothing the detector can decode.  A 10x10x10 has ~3800 struts and a tag's
+        lines pass near a handful: first the struts near each view's line to the tag's centre
+        (within a strut's reach plus the tag's half-diagonal, short of the tag as the lines to
+        its face are: no other strut can cross a line to the face), then only those, against
+        the nine lines of the views they are near."""
         a, b = segments
-        if not len(a):
-            return False
-        cam = self.structure_T_camera(view).translation()
+        out = np.zeros(len(views), bool)
+        if not len(a) or not len(views):
+            return out
         h = self.model.tags[tag].size_m / 2
-        grid = np.array([[x, y, 0.0] for x in (-h, 0.0, h) for y in (-h, 0.0, h)])
+        radius = STRUT_DIAMETER_M / 2 + STRUT_MARGIN_M
         pose = self.structure_T_tag(tag)
-        pts = grid @ pose.rotation().matrix().T + pose.translation()          # (P, 3)
-        return bool(_segments_within(cam, pts, a, b, STRUT_DIAMETER_M / 2 + STRUT_MARGIN_M).any())
+        R = pose.rotation().matrix()
+        # a line from a camera in front of the tag to its face stays in front of the face's plane:
+        # a strut wholly more than its reach behind that plane cannot come near one (~90 % of
+        # them: tags face out of the structure)
+        ahead = np.maximum((a - pose.translation()) @ R[:, 2], (b - pose.translation()) @ R[:, 2]) > -radius
+        if not ahead.any():
+            return out
+        a, b = a[ahead], b[ahead]
+        grid = np.array([[x, y, 0.0] for x in (-h, 0.0, h) for y in (-h, 0.0, h)])
+        pts = grid @ R.T + pose.translation()          # (P, 3)
+        cams = np.array([self.structure_T_camera(v).translation() for v in views])   # (V, 3)
+        centre = np.broadcast_to(pose.translation(), cams.shape)
+        near = _lines_near_segments(cams, centre, a, b, radius + h * np.sqrt(2.0))   # (V, S)
+        rows = np.flatnonzero(near.any(axis=1))
+        if len(rows):
+            cols = near[rows].any(axis=0)
+            starts = np.repeat(cams[rows], len(pts), axis=0)
+            ends = np.tile(pts, (len(rows), 1))
+            hit = _lines_near_segments(starts, ends, a[cols], b[cols], radius).any(axis=1)
+            out[rows] = hit.reshape(len(rows), len(pts)).any(axis=1)
+        return out
 
     def _missed_near(self, tag: int, view: View) -> bool:
         return any(abs(view.lift_m - m.lift_m) < self.config.lift_step_m / 2
@@ -726,20 +779,29 @@ class SurveyPlanner:
 
 MISSED_TURN_RAD = np.radians(10.0)    # a view this close in turntable angle to one that missed a tag
 STRUT_MARGIN_M = 0.005                # a line of sight this much clear of a strut's surface still counts as hidden
+SIGHT_FRONT = 0.97                    # a strut crossing the last 3 % of a line of sight is the tag's own bracket
 
 
 def _segments_within(cam: np.ndarray, pts: np.ndarray, a: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:
     """(P,) whether the sight line from `cam` to each of `pts` passes within `radius` of one of the
-    segments a[i]-b[i] (S, 3) strictly between the camera and the point (the closest approach of
-    two segments, clamped to both)."""
-    d1 = pts - cam                                    # (P, 3) sight lines
+    segments a[i]-b[i] (S, 3) strictly between the camera and the point."""
+    return _lines_near_segments(np.broadcast_to(cam, pts.shape), pts, a, b, radius).any(axis=1)
+
+
+def _lines_near_segments(starts: np.ndarray, ends: np.ndarray, a: np.ndarray, b: np.ndarray,
+                         radius: float, front: float = SIGHT_FRONT) -> np.ndarray:
+    """(L, S) whether the sight line from starts[l] to ends[l] (L, 3) passes within `radius` of the
+    segment a[s]-b[s] (S, 3), at a point of the line short of `front` of the way to its end: the
+    closest approach of two segments, clamped to both, on the line's first `front` (only what
+    stands in front of a tag hides it, not the strut its own bracket sits on)."""
+    d1 = (ends - starts) * front                      # (L, 3) the lines, short of their ends
     d2 = b - a                                        # (S, 3) struts
-    r = cam[None, :] - a                              # (S, 3)
-    aa = np.einsum("pi,pi->p", d1, d1)[:, None]       # (P, 1)
+    aa = np.einsum("li,li->l", d1, d1)[:, None]       # (L, 1)
     ee = np.einsum("si,si->s", d2, d2)[None, :]       # (1, S)
-    bb = d1 @ d2.T                                    # (P, S)
-    cc = (d1 @ r.T)                                   # (P, S): d1 . (cam - a)
-    ff = np.einsum("si,si->s", d2, r)[None, :]        # (1, S): d2 . (cam - a)
+    bb = d1 @ d2.T                                    # (L, S)
+    sa = starts @ a.T                                 # (L, S)
+    cc = np.einsum("li,li->l", d1, starts)[:, None] - d1 @ a.T           # d1 . (start - a)
+    ff = starts @ d2.T - np.einsum("si,si->s", d2, a)[None, :]          # d2 . (start - a)
     den = aa * ee - bb ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
         sc = np.where(den > 1e-12, (bb * ff - cc * ee) / den, 0.0)
@@ -747,11 +809,10 @@ def _segments_within(cam: np.ndarray, pts: np.ndarray, a: np.ndarray, b: np.ndar
     with np.errstate(divide="ignore", invalid="ignore"):
         tc = np.clip((bb * sc + ff) / ee, 0.0, 1.0)
     sc = np.clip(np.where(aa > 0, (bb * tc - cc) / aa, 0.0), 0.0, 1.0)
-    p = cam[None, None, :] + sc[..., None] * d1[:, None, :]
-    q = a[None, :, :] + tc[..., None] * d2[None, :, :]
-    dist = np.linalg.norm(p - q, axis=2)
-    # only what stands in front of the tag: not the strut the tag's own bracket sits on
-    return ((dist < radius) & (sc < 0.97)).any(axis=1)
+    # |start + sc d1 - (a + tc d2)|^2 expanded, with r = start - a: no (L, S, 3) array
+    rr = np.einsum("li,li->l", starts, starts)[:, None] - 2.0 * sa + np.einsum("si,si->s", a, a)[None, :]
+    dist2 = rr + sc ** 2 * aa + tc ** 2 * ee + 2.0 * sc * cc - 2.0 * tc * ff - 2.0 * sc * tc * bb
+    return dist2 < radius ** 2
 
 
 def _order(v: View) -> tuple:
