@@ -913,6 +913,13 @@ class SfGraphSlam:
                 out[self.model.tags[rel.a].module] = rel.deploy
         return out
 
+    def deployment_unread(self, tags: Iterable[int]) -> bool:
+        """Whether these tags' deployable pair has had no deployment check read (False when they
+        form no deployable pair)."""
+        tags = set(tags)
+        return any(rel.kind == "deployable" and {rel.a, rel.b} <= tags and rel.deploy is None
+                   for rel in self.relations.values())
+
     def untied(self) -> list[RelationState]:
         return [r for r in self.relations.values() if r.decided and not r.tied]
 

@@ -469,17 +469,22 @@ class BorgProcedure:
         that is not in the graph's measurement of the module (never detected, or only too
         obliquely to use), or that fewer of the step's views showed than the plan counted on and
         than the coverage needs (`SurveyConfig.min_sightings`: one sighting leaves its depth to
-        one view).  A tag rejected as displaced is measured: another view would not move it."""
+        one view).  A tag rejected as displaced is measured: another view would not move it --
+        unless it is a deployable's whose deployment is unread, which another view can read."""
         tags = self.model.module_by_name[name].tags
         expected = set(tags) if plan is None or result.verdict == UNVERIFIED else \
             {t for seen in plan.expected for t in seen}
         need = self.planner.config.min_sightings
+        unread = self.measure.deployment_unread(name)
         out = []
         for t in tags:
-            if t not in expected or t in self.measure.rejected_tags:
+            displaced = t in self.measure.rejected_tags
+            if t not in expected or (displaced and not unread):
                 continue
             planned = sum(t in seen for seen in plan.expected) if plan is not None else need
-            if t not in result.tags_seen or self._sightings(name, t) < min(planned, need):
+            # the deployment check reads each tag in `need` views, however many the plan counted on
+            want = need if displaced else min(planned, need)
+            if t not in result.tags_seen or self._sightings(name, t) < want:
                 out.append(t)
         return out
 

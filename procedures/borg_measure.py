@@ -140,9 +140,14 @@ class Measurement:
         estimates = {t: p for t, (p, _) in measured.items()}
         covs = {t: c for t, (_, c) in measured.items() if c is not None}
         v = verify_module(self.model, module, estimates, covariances=covs, rejected=self.rejected_tags,
-                          not_deployed=self.slam.not_deployed(), tolerances=self.tolerances)
+                          not_deployed=self.slam.not_deployed(), tolerances=self.tolerances,
+                          deployment_unread={module} if self.deployment_unread(module) else frozenset())
         self._verdicts[module] = v
         return v
+
+    def deployment_unread(self, module: str) -> bool:
+        """A deployable whose deployment check (its B -> T pair) has not been read yet."""
+        return self.slam.deployment_unread(self.model.module_by_name[module].tags)
 
     def camera_estimates(self) -> list[tuple[Pose3, np.ndarray | None]]:
         """The estimated camera poses (structure frame) of the last step's views, with covariances."""

@@ -184,3 +184,17 @@ def test_a_rejected_tag_does_not_condemn_a_module_its_other_tag_clears(model):
     assert "1" in v.reason and "rejected" in v.reason
     # without the rejection the displaced tag would condemn it
     assert verify_module(model, "2D", est, covariances=covs()).verdict == "flagged"
+
+
+def test_a_deployable_whose_top_tag_is_displaced_and_deployment_unread_is_not_ok(model):
+    # a deployable stopped at 0.35 m of 0.5 m: its top tag 15 cm low, rejected as displaced; seen
+    # in too few views for the deployment check, its bottom tag alone must not pass it
+    # (an N = 6 layer study passed three such modules `ok`)
+    est = design_estimates(model)
+    top = model.module_by_name["2D"].tags[1]
+    est[top] = shifted(est[top], [0.0, 0.0, -0.15])
+    v = verify_module(model, "2D", est, covariances=covs(), rejected={top}, deployment_unread={"2D"})
+    assert v.verdict == "uncertain" and "deployment not yet read" in v.reason
+    # once the check has read it deployed (the tag itself displaced), the other tag clears it
+    v = verify_module(model, "2D", est, covariances=covs(), rejected={top})
+    assert v.verdict == "ok"
