@@ -14,8 +14,9 @@ only if the bottom one is unusable and the module is deployed).  It is compared 
 - `uncertain`: neither -- the deviation is within its own uncertainty band of the tolerance, so the
   measurement cannot tell; or a deployable with a tag rejected as displaced whose deployment was
   not read (`deployment_unread`: its two tags not yet seen in the views the check needs), because
-  a top tag 15 cm low is what a deployable stopped at 0.35 m of 0.5 m looks like.  The procedure takes more views and asks again; a module still
-  uncertain when the view budget is spent is reported so, never passed as `ok`.
+  a top tag 15 cm low is what a deployable stopped at 0.35 m of 0.5 m looks like.  The procedure
+  takes more views and asks again; a module still uncertain when the view budget is spent is
+  reported so, never passed as `ok`.
 The 1-sigma is the module's, not its tag's: the tag's covariance carried through the lever arm
 from the tag to the module's anchor (estimation/precision.py), where a tag's tilt shows.
 """
@@ -71,7 +72,7 @@ def verify_module(model: BorgModel, module: str, estimates: Mapping[int, Pose3],
                   deployment_unread: set[str] | frozenset[str] = frozenset()) -> Verdict:
     """The module's verdict record (lab/core/verdicts.py), with the tolerance it was judged by and
     the tags of it that were measured.  `deployment_unread`: deployables whose deployment check
-    has not been read (None of it: a study without one passes every deployable as read)."""
+    has not been read yet (by default none: every deployable counts as read)."""
     m = model.module_by_name[module]
     tol = (tolerances or Tolerances()).of(m.kind)
     judged: dict[str, Any] = {"tolerance_m": tol.position_m, "tolerance_rad": tol.rotation_rad,
