@@ -616,7 +616,7 @@ class SurveyPlanner:
     def _sight(self, module: str, placed_modules: Sequence[str], present: set[int],
                views: Sequence[View]) -> dict[View, list[int]]:
         """View -> the present tags it is predicted to read, for `views`.  The module's own tags are
-        checked against the struts built so far too (`_behind_strut`): the visibility model has
+        checked against the struts built so far too (`_behind_struts`): the visibility model has
         tags hiding tags, and a strut across a tag's face hides it as surely (at N >= 4 the top
         layer's strut brackets sit behind the struts in front of them from many views)."""
         step = self._step_of_placed(placed_modules)
@@ -645,10 +645,6 @@ class SurveyPlanner:
             return np.zeros((0, 3)), np.zeros((0, 3))
         e = np.array(sorted(edges))
         return self.model.nodes[e[:, 0]], self.model.nodes[e[:, 1]]
-
-    def _behind_strut(self, tag: int, view: View, segments: tuple[np.ndarray, np.ndarray]) -> bool:
-        """Whether a strut crosses the line of sight to the tag's face from `view`."""
-        return bool(self._behind_struts(tag, [view], segments)[0])
 
     def _behind_struts(self, tag: int, views: Sequence[View], segments: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """(V,) whether a strut crosses the line of sight from each view to the tag's face (a 3x3

@@ -28,11 +28,11 @@ def test_a_first_plan_does_not_count_on_a_view_a_strut_crosses():
     # the tags-only model would count on views a strut crosses (else this test shows nothing)
     present = p.present_index(set(p.model.turntable.tag_ids).union(*(p.model.module_by_name[n].tags for n in placed)))
     tags_only = [v for v in p._seeing(p._facing(module), [tag]) if tag in p.visible(v, present)]
-    assert any(p._behind_strut(tag, v, struts) for v in tags_only)
+    assert p._behind_struts(tag, tags_only, struts).any()
     plan = p.plan(module, placed)
     counted = [v for v, seen in zip(plan.views, plan.expected) if tag in seen]
     assert counted, "the plan still sees the tag from somewhere"
-    assert not any(p._behind_strut(tag, v, struts) for v in counted)
+    assert not p._behind_struts(tag, counted, struts).any()
 
 
 def test_the_struts_pruned_by_the_central_line_give_the_answer_of_every_strut():
