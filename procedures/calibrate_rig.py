@@ -211,13 +211,13 @@ class RigCalibrationProcedure:
 
     def _solve(self, run: RunContext) -> None:
         from estimation.rig_calibration_solve import Limits, solve_rig
-        from procedures.rig_survey import against_truth
+        from procedures.rig_survey import against_truth, no_rim_seen
 
         rec = run.recorder
         self.sightings = sum(len(v.sightings) for v in self.views)
-        if self.sightings == 0:
-            raise StopRun(f"no turntable tag was seen in {len(self.views)} views: is the camera looking at the "
-                          f"turntable's rim (rig file [camera] platform_T_camera, [stewart] world_T_base)?")
+        why = no_rim_seen(self.views)
+        if why:
+            raise StopRun(why)
         t0 = time.perf_counter()
         sol = solve_rig(self.views, self.geometry, self.intrinsics.dist, self.tags, turntable_tags=self.turntable_tags,
                         limits=self.limits or Limits(), rig_name=self.bench.rig.name)

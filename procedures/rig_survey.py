@@ -115,6 +115,14 @@ def plan_rig_survey(reachable: Callable[[Sequence[float]], bool], turntable_limi
     return RigSurveyPlan(tuple(views), skipped, order, lift_m)
 
 
+def no_rim_seen(views: Sequence[CalibrationView]) -> str | None:
+    """Why a survey's views cannot calibrate anything (no turntable tag seen in any), or None."""
+    if any(v.sightings for v in views):
+        return None
+    return (f"no turntable tag was seen in {len(views)} views: is the camera looking at the turntable's rim "
+            f"(rig file [camera] platform_T_camera, [stewart] world_T_base)?")
+
+
 def survey_lift(planner: Any, plan: RigSurveyPlan, lift_limits_m: tuple[float, float] | None) -> float:
     """The lift height for the rig survey: the poses above were chosen for the rim tags of the 3x3x3
     BORG's turntable seen from the lift's zero (two or three tags per view, 25 deg below the
