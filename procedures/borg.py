@@ -195,7 +195,7 @@ class BorgProcedure:
         plan = plan_rig_survey(lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable,
                                (rig.turntable.min_rad, rig.turntable.max_rad), angle_step_rad=step, order="poses")
         # a bigger turntable's rim is seen from lower down (0 for the 3x3x3's, and without a lift)
-        lift = survey_lift(self.planner, plan, self.planner.lift_limits_m)
+        lift = survey_lift(self.planner, plan)
         if not lift:
             return plan
         return plan_rig_survey(lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable,

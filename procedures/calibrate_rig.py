@@ -92,7 +92,7 @@ class RigCalibrationProcedure:
                                                             rig.stewart.geometry.home_m, rig.camera.platform_T_camera),
                                     lambda p: self.kinematics.inverse(p).reachable,
                                     (rig.turntable.min_rad, rig.turntable.max_rad), lift_limits_m=(rig.lift.min_m, rig.lift.max_m))
-            lift = rig_survey.survey_lift(planner, self.survey_plan, planner.lift_limits_m)
+            lift = rig_survey.survey_lift(planner, self.survey_plan)
             if lift:
                 self.survey_plan = rig_survey.plan_rig_survey(
                     lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable,

@@ -123,23 +123,20 @@ def no_rim_seen(views: Sequence[CalibrationView]) -> str | None:
             f"(rig file [camera] platform_T_camera, [stewart] world_T_base)?")
 
 
-def survey_lift(planner: Any, plan: RigSurveyPlan, lift_limits_m: tuple[float, float] | None) -> float:
+def survey_lift(planner: Any, plan: RigSurveyPlan) -> float:
     """The lift height for the rig survey: the poses above were chosen for the rim tags of the 3x3x3
     BORG's turntable seen from the lift's zero (two or three tags per view, 25 deg below the
     camera).  A bigger turntable's rim comes closer and further below the camera: from a lower
-    height more views see two or more rim tags.  The height (on the planner's grid over the travel)
-    where most views see two or more, the nearest to 0 on a tie; if none does anywhere, the one
-    where most rim tags are seen at all.  0 without a lift.  `planner`: a procedures.survey
-    SurveyPlanner of the run's structure (it predicts visibility)."""
-    if lift_limits_m is None:
+    height more views see two or more rim tags.  The height (on the planner's grid over the travel,
+    `SurveyPlanner.lift_grid`) where most views see two or more, the nearest to the base on a tie;
+    if none does anywhere, the one where most rim tags are seen at all.  0 without a lift.
+    `planner`: a procedures.survey SurveyPlanner of the run's structure (it predicts visibility)."""
+    if planner.lift_limits_m is None:
         return 0.0
     from procedures.survey import View
 
-    lo, hi = lift_limits_m
-    base = min(max(0.0, lo), hi)
-    step = planner.config.lift_step_m
-    grid = sorted({base, *(float(round(h, 6)) for h in np.arange(base, hi + 1e-9, step)),
-                   *(float(round(h, 6)) for h in np.arange(base, lo - 1e-9, -step))}, key=lambda h: (abs(h - base), h))
+    heights, base = planner.lift_grid
+    grid = sorted(heights, key=lambda h: (abs(h - base), h))
     rim = list(planner.model.turntable.tag_ids)
 
     def score(h: float) -> tuple[int, int]:

@@ -408,9 +408,9 @@ class SurveyPlanner:
 
     # ---- which views: heights and wider looks ------------------------------------------------------
     @cached_property
-    def _lift_grid(self) -> tuple[list[float], float]:
-        """The lift heights a view may be taken at (`lift_step_m` apart over the travel) and the base
-        height (0, or the nearest end of the travel)."""
+    def lift_grid(self) -> tuple[list[float], float]:
+        """The lift heights a view may be taken at (`lift_step_m` apart over the travel, ascending)
+        and the base height (0, or the nearest end of the travel); ([0], 0) without a lift."""
         if self.lift_limits_m is None:
             return [0.0], 0.0
         lo, hi = self.lift_limits_m
@@ -425,7 +425,7 @@ class SurveyPlanner:
         heights, then the standard and wider views at the heights not chosen."""
         chosen = set(self.candidates)
         out = [self._at(v, h) for h in self.lift_heights for v in self._wide]
-        out += [self._at(v, h) for h in self._lift_grid[0] if h not in self.lift_heights for v in self._wide]
+        out += [self._at(v, h) for h in self.lift_grid[0] if h not in self.lift_heights for v in self._wide]
         return [v for v in dict.fromkeys(out) if v not in chosen]
 
     def _choose_view_sets(self) -> tuple[tuple[float, bool], ...]:
@@ -440,7 +440,7 @@ class SurveyPlanner:
         passes for tags seen but not well (not twice from turntable angles `min_angle_separation`
         apart).  The turntable's tags count as a first step (their relations to the base modules
         tie the structure frame)."""
-        grid, base = self._lift_grid
+        grid, base = self.lift_grid
         # the turntable's tags first: they tie the structure frame to the rig (a run without a rig
         # calibration has nothing else), and a turntable wider than the camera's field below the
         # home height (N >= 4 on the sim rig) needs a lower look at them
