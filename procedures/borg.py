@@ -212,8 +212,20 @@ class BorgProcedure:
                        f"{self.bench.rig.name!r} sees tag{'s' if len(tags) > 1 else ''} {where}")
         return out
 
+    @cached_property
+    def rig_survey_blind(self) -> str | None:
+        """Why the run's rig survey would see no turntable tag, or None (no survey, or it sees some)."""
+        if not self.rig_survey:
+            return None
+        from procedures.rig_survey import predicted_blind
+
+        return predicted_blind(self.planner, self.rig_survey_plan, self.bench.rig.stewart.station)
+
     def check_observable(self) -> None:
-        """Before anything moves: refuse a run the rig cannot see all of, unless told to go on."""
+        """Before anything moves: refuse a run the rig cannot see all of, unless told to go on, and
+        one whose rig survey cannot see the turntable (nothing would calibrate the rig)."""
+        if self.rig_survey_blind:
+            raise UserError(f"{self.rig_survey_blind}; nothing moved")
         if self.unobservable and not self.allow_unobservable:
             raise UnobservableModules(
                 f"rig {self.bench.rig.name!r} cannot observe {len(self.unobservable)} of the {len(self.modules)} "
@@ -231,6 +243,8 @@ class BorgProcedure:
         problems = []
         for spec in steps:
             if "rig_survey" in spec.params:
+                if self.rig_survey_blind:
+                    problems.append(f"{spec.name}: {self.rig_survey_blind}")
                 if self.rig_survey_plan.lift_m:
                     try:
                         if lift is None:

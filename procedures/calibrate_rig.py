@@ -83,15 +83,15 @@ class RigCalibrationProcedure:
         self.survey_plan = plan if plan is not None else rig_survey.plan_rig_survey(
             lambda p: self.kinematics.inverse(np.asarray(p, float)).reachable, (rig.turntable.min_rad, rig.turntable.max_rad),
             poses=rig_survey.SURVEY_POSES, angle_step_rad=step, order="poses")
+        from procedures.survey import CameraModel, SurveyPlanner
+
+        i = self.intrinsics
+        planner = SurveyPlanner(self.model, CameraModel(i.K, i.width_px, i.height_px, rig.stewart.world_T_base,
+                                                        rig.stewart.geometry.home_m, rig.camera.platform_T_camera),
+                                lambda p: self.kinematics.inverse(p).reachable, (rig.turntable.min_rad, rig.turntable.max_rad),
+                                lift_limits_m=None if rig.lift is None else (rig.lift.min_m, rig.lift.max_m))
         if plan is None and rig.lift is not None:
             # a bigger turntable's rim is seen from lower down (rig_survey.survey_lift)
-            from procedures.survey import CameraModel, SurveyPlanner
-
-            i = self.intrinsics
-            planner = SurveyPlanner(self.model, CameraModel(i.K, i.width_px, i.height_px, rig.stewart.world_T_base,
-                                                            rig.stewart.geometry.home_m, rig.camera.platform_T_camera),
-                                    lambda p: self.kinematics.inverse(p).reachable,
-                                    (rig.turntable.min_rad, rig.turntable.max_rad), lift_limits_m=(rig.lift.min_m, rig.lift.max_m))
             lift = rig_survey.survey_lift(planner, self.survey_plan)
             if lift:
                 self.survey_plan = rig_survey.plan_rig_survey(
@@ -101,6 +101,9 @@ class RigCalibrationProcedure:
         if not self.survey_plan.views:
             raise UserError(f"rig {rig.source}: no survey pose is inside the Stewart workspace at any turntable angle "
                             f"within [turntable] min_deg..max_deg")
+        blind = rig_survey.predicted_blind(planner, self.survey_plan, rig.stewart.station)
+        if blind:
+            raise UserError(f"rig {rig.source}: {blind}; nothing moved")
         self.geometry = RigGeometry.from_rig(rig, self.model.world_T_structure(0.0), self.intrinsics.K)
         self.turntable_tags = tuple(self.model.turntable.tag_ids)
         self.tags = {t: (self.model.tags[t].structure_T_tag, self.model.tags[t].size_m) for t in self.turntable_tags}

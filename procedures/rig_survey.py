@@ -123,6 +123,22 @@ def no_rim_seen(views: Sequence[CalibrationView]) -> str | None:
             f"(rig file [camera] platform_T_camera, [stewart] world_T_base)?")
 
 
+def predicted_blind(planner: Any, plan: RigSurveyPlan, station: str) -> str | None:
+    """Why the survey planner expects no view of `plan` to see a turntable tag (the base stands too
+    close to the rim, or the camera looks away from it), or None: said before anything moves,
+    where `no_rim_seen` can only say it after the whole survey."""
+    from procedures.survey import View
+
+    rim = list(planner.model.turntable.tag_ids)
+    if any(planner.visible(View(v.turntable_rad, tuple(v.stewart_pose), v.lift_m), rim) for v in plan.views):
+        return None
+    base = planner.camera.world_T_stewart_base.translation()
+    standoff = math.hypot(base[0], base[1]) - planner.model.turntable.radius_m
+    return (f"the rig survey's {len(plan.views)} views are predicted to see no turntable tag from station "
+            f"{station!r}: its base stands {standoff:.2f} m from the rim of borg:{planner.model.n}'s turntable "
+            f"(rig file [stewart] rim_standoff_m and [[stewart.stations]], docs/hardware.md \"Stations\")")
+
+
 def survey_lift(planner: Any, plan: RigSurveyPlan) -> float:
     """The lift height for the rig survey: the poses above were chosen for the rim tags of the 3x3x3
     BORG's turntable seen from the lift's zero (two or three tags per view, 25 deg below the

@@ -67,7 +67,7 @@ class SurveyConfig:
     margin_px: float = 25.0
     min_side_px: float = 16.0
     max_view_angle_rad: float = np.radians(62.0)
-    max_distance_m: float = 4.0
+    max_distance_m: float = 4.5
     occlusion_overlap: float = 0.25       # fraction of a tag's box covered by a nearer tag's box
     angle_offsets_rad: tuple[float, ...] = tuple(np.radians([0.0, -25.0, 25.0, -10.0, 10.0, -18.0, 18.0, -32.0, 32.0]))
     stewart_poses: tuple[tuple[float, ...], ...] = (

@@ -24,8 +24,13 @@ def test_the_base_stands_at_the_first_station_clear_of_the_turntable():
         radius = turntable_radius_m(n * SPACING_M)
         joints = np.array([at.stewart.world_T_base.transformFrom(j) for j in at.stewart.geometry.base_joints_m])
         clear = np.hypot(joints[:, 0], joints[:, 1]).min() - radius
-        assert at.stewart.station == ("near" if n <= 7 else "far"), n
-        assert clear >= rig.stewart.clearance_m, (n, clear)
+        standoff = np.hypot(*at.stewart.world_T_base.translation()[:2]) - radius
+        assert at.stewart.station == ("near" if n <= 6 else "far"), n
+        assert clear >= rig.stewart.clearance_m and standoff >= rig.stewart.rim_standoff_m, (n, clear, standoff)
+        if n == 7:    # the near base clears its rim, but stands too close for the camera to see it
+            near = np.array([rig.stewart.world_T_base.transformFrom(j) for j in rig.stewart.geometry.base_joints_m])
+            assert np.hypot(near[:, 0], near[:, 1]).min() >= radius + rig.stewart.clearance_m
+            assert np.hypot(*rig.stewart.world_T_base.translation()[:2]) < radius + rig.stewart.rim_standoff_m
         if n >= 8:    # the near pedestal would stand on this turntable
             near = np.array([rig.stewart.world_T_base.transformFrom(j) for j in rig.stewart.geometry.base_joints_m])
             assert np.hypot(near[:, 0], near[:, 1]).min() < radius + rig.stewart.clearance_m
@@ -50,10 +55,40 @@ def _rig_text(tmp_path: Path, edit) -> Path:
     (lambda t: t.replace('world_T_base = { xyz_m = [-4.45, 0.0, 0.27]', 'world_T_base = { xyz_m = [-4.45, 0.0]'),
      r"\[stewart\.stations\[0\]\.world_T_base\]\.xyz_m: expected a list of 3 numbers"),
     (lambda t: t.replace("clearance_m = 0.05", "clearance_m = -1"), r"\[stewart\]\.clearance_m: must be >= 0"),
+    (lambda t: t.replace("rim_standoff_m = 0.6", "rim_standoff_m = nan"), r"\[stewart\]\.rim_standoff_m: "),
 ])
 def test_a_bad_station_is_one_line_naming_the_key(tmp_path, edit, match):
     with pytest.raises(RigError, match=match):
         load_rig(_rig_text(tmp_path, edit))
+
+
+def _no_standoff(tmp_path: Path) -> Path:
+    """The sim rig without its rim standoff: a 7x7x7's base stands at the near station, 0.33 m from
+    the turntable's rim, where the rim tags pass under the camera's field."""
+    return _rig_text(tmp_path, lambda t: t.replace("rim_standoff_m = 0.6", "rim_standoff_m = 0.0"))
+
+
+def test_a_rig_survey_that_would_see_no_rim_tag_is_refused_before_anything_moves(lab, tmp_path):
+    """Before, `lab calibrate rig --n 7` moved through all 288 survey views and then stopped: "no
+    turntable tag was seen"; a run did the same at its first step."""
+    rig = str(_no_standoff(tmp_path))
+    code, out, err = lab.main("calibrate", "rig", "--rig", rig, "--n", "7", "--auto", "--speedup", "100",
+                              "--out", str(tmp_path / "cal.json"), "--run-dir", str(tmp_path / "run"))
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "predicted to see no turntable tag from station 'near'" in err and "0.33 m from the rim" in err
+    assert "rim_standoff_m" in err and "nothing moved" in err
+    assert not (tmp_path / "cal.json").exists() and not (tmp_path / "run").exists()
+    r = lab(["run", "borg", "--rig", rig, "--n", "7", "--dry-run"], timeout=600)
+    assert "REFUSED: rig calibration: the rig survey's 288 views are predicted to see no turntable tag" in r.stdout
+
+
+def test_a_dry_run_finds_every_module_of_a_7x7x7_observable_from_the_far_station(lab):
+    """The near base is too close to a 7x7x7's rim (above); from the far one its centre column's
+    tags are 4.2 m from the camera, within the planner's reach (`SurveyConfig.max_distance_m`)."""
+    r = lab(["run", "borg", "--n", "7", "--dry-run"], timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "dry run of borg: 236 steps planned" in r.stdout
+    assert "REFUSED" not in r.stdout and "unobservable" not in r.stdout + r.stderr
 
 
 def test_a_dry_run_finds_every_module_of_an_8x8x8_observable(lab):

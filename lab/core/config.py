@@ -100,10 +100,14 @@ class StewartConfig:
     world_T_base: Pose3             # where the base stands now: the pose of `station`
     # every place the base may stand ([stewart] world_T_base first, then [[stewart.stations]] in the
     # file's order) and which one it is at; a BORG run takes the first whose base joints all stand
-    # `clearance_m` outside its turntable's rim (Rig.for_borg)
+    # `clearance_m` outside its turntable's rim and whose centre stands `rim_standoff_m` back from
+    # it (Rig.for_borg)
     stations: tuple[Station, ...] = ()
     station: str = "near"
     clearance_m: float = 0.05
+    # the rim tags stand on the rim's edge facing out, below the structure: from a base closer to
+    # the rim than this they pass under the camera's field and the rig survey is blind
+    rim_standoff_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -344,13 +348,16 @@ class Rig:
 
     def station_for(self, turntable_radius_m: float) -> str:
         """The first station (in the file's order) whose base joints all stand `clearance_m` or more
-        outside a turntable rim of this radius (centred on the world z axis); the last one if none
-        does (a run's planner then lists what that station cannot see)."""
+        outside a turntable rim of this radius (centred on the world z axis) and whose centre stands
+        `rim_standoff_m` or more outside it (the camera must see the rim's tags); the last one if
+        none does (a run's planner then lists what that station cannot see)."""
         assert self.stewart is not None
-        g = self.stewart.geometry
-        for st in self.stewart.stations:
+        g, s = self.stewart.geometry, self.stewart
+        for st in s.stations:
             joints = np.array([st.world_T_base.transformFrom(j) for j in g.base_joints_m])
-            if np.hypot(joints[:, 0], joints[:, 1]).min() >= turntable_radius_m + self.stewart.clearance_m:
+            centre = st.world_T_base.translation()
+            if (np.hypot(joints[:, 0], joints[:, 1]).min() >= turntable_radius_m + s.clearance_m
+                    and math.hypot(centre[0], centre[1]) >= turntable_radius_m + s.rim_standoff_m):
                 return st.name
         return self.stewart.stations[-1].name
 
@@ -422,6 +429,7 @@ def parse_rig(data: dict[str, Any], source: str = "<dict>", base_dir: Path | Non
         world_T_base = s.pose("world_T_base")
         station = s.string("station", default="near")
         clearance = s.number("clearance_m", default=0.05, minimum=0.0, maximum=10.0, unit="m")
+        standoff = s.number("rim_standoff_m", default=0.0, minimum=0.0, maximum=10.0, unit="m")
         stations = [Station(station, world_T_base)] + _stations(s)
         names_seen: set[str] = set()
         for st in stations:
@@ -429,7 +437,7 @@ def parse_rig(data: dict[str, Any], source: str = "<dict>", base_dir: Path | Non
                 raise s.error("stations", f"station name {st.name!r} {'used twice' if st.name else 'is empty'}")
             names_seen.add(st.name)
         s.done()
-        stewart = StewartConfig(nm, link, geometry, world_T_base, tuple(stations), station, clearance)
+        stewart = StewartConfig(nm, link, geometry, world_T_base, tuple(stations), station, clearance, standoff)
 
     lift = None
     if "lift" in data:
