@@ -36,8 +36,8 @@ from lab.core.recorder import messages as m
 from lab.core.recorder import topics
 from lab.core.structures.borg import BorgModel, build_borg
 from lab.core.survey_budget import check_max_views, check_sigma_target_mm
-from lab.core.verdicts import FLAGGED, UNCERTAIN, UNVERIFIED, Bound, TruthError, Verdict
-from procedures.console import BORG_HEADER, borg_row, console_of, more_views_line
+from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED, Bound, TruthError, Verdict
+from procedures.console import BORG_HEADER, borg_row, confirm_views_line, console_of, more_views_line
 from procedures.runner import RunContext, StepSpec, StopRun
 from procedures.setup import Bench
 from procedures.survey import CameraModel, PrecisionTarget, SurveyPlan, SurveyPlanner, View
@@ -45,8 +45,27 @@ from procedures.survey import CameraModel, PrecisionTarget, SurveyPlan, SurveyPl
 ON_FLAG = ("stop", "continue", "retry")
 MAX_RETRIES = 2
 MAX_REPLANS = 2          # rounds of views re-planned for tags a step's views did not measure
+# An `ok` read from few views can carry a 1-sigma of 1-1.6 mm (a tag seen small or oblique): honest,
+# but an error of 1.5 mm passes with it.  Such a verdict takes more views, planned for the step's
+# target as the first were, while its 1-sigma is above this multiple of the target: at most
+# MAX_CONFIRMS rounds, none when no view is predicted to shrink the module's tag any further, and a
+# second only when the first cut the 1-sigma by CONFIRM_GAIN (what a round cannot cut is the
+# frame's share, or a camera's noise floor, which more views of the module hardly reduce: on a
+# poor camera a second round took 0.71 mm to 0.71 and 0.56 to 0.48).
+OK_SIGMA_FACTOR = 2.0
+MAX_CONFIRMS = 2
+CONFIRM_GAIN = 0.25
 _STREAM_CAMERA = 8200    # simulated camera noise per step: [seed, _STREAM_CAMERA, step, attempt]
 IMAGE_FORMAT = "jpeg"    # logged images (detection runs on the lossless frame)
+
+
+def needs_confirming(result: Verdict, target_m: float, confirms: int, confirmed_from: float | None) -> bool:
+    """Whether an `ok` takes another round of views (OK_SIGMA_FACTOR): its 1-sigma is over that
+    multiple of the step's target, fewer than MAX_CONFIRMS rounds were taken for it, and the last
+    one (`confirmed_from`: the 1-sigma before it) cut the 1-sigma by CONFIRM_GAIN."""
+    return (result.verdict == OK and result.sigma_m is not None and confirms < MAX_CONFIRMS
+            and result.sigma_m > OK_SIGMA_FACTOR * target_m
+            and (confirmed_from is None or result.sigma_m <= (1 - CONFIRM_GAIN) * confirmed_from))
 
 
 class UnobservableModules(UserError):
@@ -429,12 +448,14 @@ class BorgProcedure:
         re-planned from the calibrated rig and the graph's estimate of the structure when a tag of
         the module that the views were planned to show was not measured (out of frame, hidden, too
         oblique, unreadable), and views planned from the module's covariance in the graph while its
-        verdict is `uncertain`.  The last round's verdict, with what only the procedure knows
+        verdict is `uncertain`, or `ok` with a 1-sigma over `OK_SIGMA_FACTOR` times the step's
+        target (at most `MAX_CONFIRMS` rounds).  The last round's verdict, with what only the procedure knows
         (and what the re-planning tried), is the module's record."""
         plan = self.surveys[name]
         taken: list[View] = []
         replans: list[str] = []          # what each re-plan was for and what it tried
-        rnd = 0
+        rnd = confirms = 0
+        confirmed_from: float | None = None      # the ok's 1-sigma before the last confirming round
         while True:
             result = self._measure_round(spec, run, name, attempt, rnd, plan.views, len(taken))
             taken += plan.views
@@ -452,18 +473,24 @@ class BorgProcedure:
                     rnd += 1
                     continue
                 replans.append(f"{what}, and no other reachable view is predicted to show it")
-            if result.verdict != UNCERTAIN or budget <= 0:
+            confirm = needs_confirming(result, self.precision.sigma_m, confirms, confirmed_from)
+            if not (result.verdict == UNCERTAIN or confirm) or budget <= 0:
                 break
             placed = self.measure.placed
-            # from the calibrated rig and the estimated structure, avoiding where its tags were missed
+            # from the calibrated rig and the estimated structure, avoiding where its tags were missed;
+            # an uncertain one aims past the plan's target, at what the band needs
             plan = self._adapted_planner(name).more_views(name, placed, taken,
                                                           self.measure.verdict_tag_covariance(name),
-                                                          # past the plan's target: aim at what the band needs
-                                                          self._round_target(result), budget)
+                                                          self.precision if confirm else self._round_target(result),
+                                                          budget)
             if not plan.views:
                 break
             rnd += 1
-            console_of(run).line(more_views_line(name, result.deviation_m, result.sigma_m, len(plan.views)))
+            if confirm:
+                confirms, confirmed_from = confirms + 1, result.sigma_m
+                console_of(run).line(confirm_views_line(name, result.sigma_m, self.precision.sigma_m, len(plan.views)))
+            else:
+                console_of(run).line(more_views_line(name, result.deviation_m, result.sigma_m, len(plan.views)))
         if replans:
             still = self._missing_tags(name, result, self.surveys[name])
             outcome = (f"tag {', '.join(map(str, still))} still short of views" if still

@@ -140,6 +140,12 @@ def more_views_line(name: str, deviation_m: float | None, sigma_m: float | None,
             f"{views} more view(s)")
 
 
+def confirm_views_line(name: str, sigma_m: float, target_m: float, views: int) -> str:
+    """An `ok` module about to be measured again: its 1-sigma is far above the step's target."""
+    return (f"  {name}: ok at 1σ {_num(sigma_m, 1000, 2)} mm, over twice the {_num(target_m, 1000, 2)} mm target; "
+            f"{views} more view(s)")
+
+
 def borg_table(summary: dict[str, Any]) -> str:
     """The verification table printed at the end of `lab run borg` (and by `lab runs show`)."""
     modules = summary.get("modules", [])
