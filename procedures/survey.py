@@ -647,17 +647,18 @@ class SurveyPlanner:
         return self.model.nodes[e[:, 0]], self.model.nodes[e[:, 1]]
 
     def _behind_struts(self, tag: int, views: Sequence[View], segments: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-        """(V,) whether a strut crosses the line of sight from each view to the tag's face (a 3x3
-        grid of points over its black square, corners included): a strut across a tag's code or
-        border leaves nothing the detector can decode.  A 10x10x10 has ~3800 struts and a tag's
-        lines pass near a handful: first the struts near each view's line to the tag's centre
+        """(V,) whether a strut or a node hub crosses the line of sight from each view to the tag's
+        face (`_face_grid`: points over its black square, corners included): a strut or hub
+        across a tag's code or border leaves nothing the detector can decode (`_behind_nodes`).
+        A 10x10x10 has ~3800 struts and a tag's lines pass near a handful: first the struts near each view's line to the tag's centre
         (within a strut's reach plus the tag's half-diagonal, short of the tag as the lines to
         its face are: no other strut can cross a line to the face), then only those, against
-        the nine lines of the views they are near."""
+        the lines of the views they are near."""
         a, b = segments
         out = np.zeros(len(views), bool)
         if not len(a) or not len(views):
             return out
+        out = self._behind_nodes(tag, views, np.unique(np.vstack([a, b]), axis=0))
         h = self.model.tags[tag].size_m / 2
         radius = STRUT_DIAMETER_M / 2 + STRUT_MARGIN_M
         pose = self.structure_T_tag(tag)
@@ -669,7 +670,7 @@ class SurveyPlanner:
         if not ahead.any():
             return out
         a, b = a[ahead], b[ahead]
-        grid = np.array([[x, y, 0.0] for x in (-h, 0.0, h) for y in (-h, 0.0, h)])
+        grid = _face_grid(h)
         pts = grid @ R.T + pose.translation()          # (P, 3)
         cams = np.array([self.structure_T_camera(v).translation() for v in views])   # (V, 3)
         centre = np.broadcast_to(pose.translation(), cams.shape)
@@ -680,8 +681,42 @@ class SurveyPlanner:
             starts = np.repeat(cams[rows], len(pts), axis=0)
             ends = np.tile(pts, (len(rows), 1))
             hit = _lines_near_segments(starts, ends, a[cols], b[cols], radius).any(axis=1)
-            out[rows] = hit.reshape(len(rows), len(pts)).any(axis=1)
+            out[rows] |= hit.reshape(len(rows), len(pts)).any(axis=1)
         return out
+
+    def _behind_nodes(self, tag: int, views: Sequence[View], nodes: np.ndarray) -> np.ndarray:
+        """(V,) whether a node hub (a sphere of NODE_DIAMETER_M at each node of the struts built)
+        stands on the line of sight from each view to a point of the tag's face (the grid of
+        `_behind_struts`).  A hub is 2.6 times a strut's width: at N = 7, 160D's tag 226, inset
+        half a cell behind face 2, was hidden by the hub of the face's node below it from the
+        views planned to see it a second time (the strut beside the hub passed clear)."""
+        out = np.zeros(len(views), bool)
+        radius = NODE_DIAMETER_M / 2 + STRUT_MARGIN_M
+        pose = self.structure_T_tag(tag)
+        R = pose.rotation().matrix()
+        nodes = nodes[(nodes - pose.translation()) @ R[:, 2] > radius]      # only hubs in front of the face
+        if not len(nodes) or not len(views):
+            return out
+        h = self.model.tags[tag].size_m / 2
+        cams = np.array([self.structure_T_camera(v).translation() for v in views])     # (V, 3)
+
+        def near(ends: np.ndarray, hubs: np.ndarray, r: float) -> np.ndarray:
+            """(V, P, N) whether the line from each camera to each of `ends` (V, P, 3), on its
+            first SIGHT_FRONT, passes within `r` of each hub."""
+            d = (ends - cams[:, None, :]) * SIGHT_FRONT
+            rel = hubs[None, :, :] - cams[:, None, :]                                   # (V, N, 3)
+            t = np.clip(np.einsum("vpi,vni->vpn", d, rel) / np.einsum("vpi,vpi->vp", d, d)[:, :, None], 0.0, 1.0)
+            gap = rel[:, None, :, :] - t[..., None] * d[:, :, None, :]
+            return np.einsum("vpni,vpni->vpn", gap, gap) < r ** 2
+
+        # first the hubs near a line to the tag's centre (within a hub's reach plus the tag's
+        # half-diagonal), then only those against the lines to the face's points
+        centre = np.broadcast_to(pose.translation(), (len(views), 1, 3))
+        cols = near(centre, nodes, radius + h * np.sqrt(2.0))[:, 0, :].any(axis=0)
+        if not cols.any():
+            return out
+        pts = _face_grid(h) @ R.T + pose.translation()
+        return near(np.broadcast_to(pts, (len(views), *pts.shape)), nodes[cols], radius).any(axis=(1, 2))
 
     def _missed_near(self, tag: int, view: View) -> bool:
         return any(abs(view.lift_m - m.lift_m) < self.config.lift_step_m / 2
@@ -775,7 +810,18 @@ class SurveyPlanner:
 
 MISSED_TURN_RAD = np.radians(10.0)    # a view this close in turntable angle to one that missed a tag
 STRUT_MARGIN_M = 0.005                # a line of sight this much clear of a strut's surface still counts as hidden
+# the node hubs the struts meet at (the design's; the simulated truss draws the same size)
+NODE_DIAMETER_M = 0.050
 SIGHT_FRONT = 0.97                    # a strut crossing the last 3 % of a line of sight is the tag's own bracket
+
+
+def _face_grid(half: float) -> np.ndarray:
+    """(25, 3) points over a tag's black square (its frame, corners included), 2.5 cm apart on a
+    10 cm tag: closer than the band a strut hides on the face (its diameter plus twice the
+    margin, 2.9 cm, more at a slant), so no strut across the face passes between them.  A 3 x 3
+    grid let a strut cross a tag's lower half unseen (N = 7, 160D's tag 226 from below)."""
+    ticks = np.linspace(-half, half, 5)
+    return np.array([[x, y, 0.0] for x in ticks for y in ticks])
 
 
 def _segments_within(cam: np.ndarray, pts: np.ndarray, a: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:
