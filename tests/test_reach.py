@@ -82,6 +82,7 @@ def test_a_rig_survey_that_would_see_no_rim_tag_is_refused_before_anything_moves
     assert "REFUSED: rig calibration: the rig survey's 288 views are predicted to see no turntable tag" in r.stdout
 
 
+@pytest.mark.slow      # CI keeps the 8x8x8's (the same station); this one guards the planner's reach
 def test_a_dry_run_finds_every_module_of_a_7x7x7_observable_from_the_far_station(lab):
     """The near base is too close to a 7x7x7's rim (above); from the far one its centre column's
     tags are 4.2 m from the camera, within the planner's reach (`SurveyConfig.max_distance_m`)."""
