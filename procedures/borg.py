@@ -449,8 +449,8 @@ class BorgProcedure:
         the module that the views were planned to show was not measured (out of frame, hidden, too
         oblique, unreadable), and views planned from the module's covariance in the graph while its
         verdict is `uncertain`, or `ok` with a 1-sigma over `OK_SIGMA_FACTOR` times the step's
-        target (at most `MAX_CONFIRMS` rounds).  The last round's verdict, with what only the procedure knows
-        (and what the re-planning tried), is the module's record."""
+        target (`needs_confirming`).  The last round's verdict, with what only the procedure
+        knows (and what the re-planning tried), is the module's record."""
         plan = self.surveys[name]
         taken: list[View] = []
         replans: list[str] = []          # what each re-plan was for and what it tried

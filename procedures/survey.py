@@ -650,15 +650,15 @@ class SurveyPlanner:
         """(V,) whether a strut or a node hub crosses the line of sight from each view to the tag's
         face (`_face_grid`: points over its black square, corners included): a strut or hub
         across a tag's code or border leaves nothing the detector can decode (`_behind_nodes`).
-        A 10x10x10 has ~3800 struts and a tag's lines pass near a handful: first the struts near each view's line to the tag's centre
-        (within a strut's reach plus the tag's half-diagonal, short of the tag as the lines to
-        its face are: no other strut can cross a line to the face), then only those, against
-        the lines of the views they are near."""
+        A 10x10x10 has ~3800 struts and a tag's lines pass near a handful: first the struts near
+        each view's line to the tag's centre (within a strut's reach plus the tag's half-diagonal,
+        short of the tag as the lines to its face are: no other strut can cross a line to the
+        face), then only those, against the lines of the views they are near."""
         a, b = segments
-        out = np.zeros(len(views), bool)
         if not len(a) or not len(views):
-            return out
-        out = self._behind_nodes(tag, views, np.unique(np.vstack([a, b]), axis=0))
+            return np.zeros(len(views), bool)
+        cams = np.array([self.structure_T_camera(v).translation() for v in views])   # (V, 3)
+        out = self._behind_nodes(tag, views, np.unique(np.vstack([a, b]), axis=0), cams)
         h = self.model.tags[tag].size_m / 2
         radius = STRUT_DIAMETER_M / 2 + STRUT_MARGIN_M
         pose = self.structure_T_tag(tag)
@@ -670,9 +670,7 @@ class SurveyPlanner:
         if not ahead.any():
             return out
         a, b = a[ahead], b[ahead]
-        grid = _face_grid(h)
-        pts = grid @ R.T + pose.translation()          # (P, 3)
-        cams = np.array([self.structure_T_camera(v).translation() for v in views])   # (V, 3)
+        pts = _face_grid(h) @ R.T + pose.translation()          # (P, 3)
         centre = np.broadcast_to(pose.translation(), cams.shape)
         near = _lines_near_segments(cams, centre, a, b, radius + h * np.sqrt(2.0))   # (V, S)
         rows = np.flatnonzero(near.any(axis=1))
@@ -684,12 +682,14 @@ class SurveyPlanner:
             out[rows] |= hit.reshape(len(rows), len(pts)).any(axis=1)
         return out
 
-    def _behind_nodes(self, tag: int, views: Sequence[View], nodes: np.ndarray) -> np.ndarray:
+    def _behind_nodes(self, tag: int, views: Sequence[View], nodes: np.ndarray,
+                      cams: np.ndarray | None = None) -> np.ndarray:
         """(V,) whether a node hub (a sphere of NODE_DIAMETER_M at each node of the struts built)
         stands on the line of sight from each view to a point of the tag's face (the grid of
         `_behind_struts`).  A hub is 2.6 times a strut's width: at N = 7, 160D's tag 226, inset
         half a cell behind face 2, was hidden by the hub of the face's node below it from the
-        views planned to see it a second time (the strut beside the hub passed clear)."""
+        views planned to see it a second time (the strut beside the hub passed clear).  `cams`:
+        the views' camera positions in the structure frame, if the caller has them."""
         out = np.zeros(len(views), bool)
         radius = NODE_DIAMETER_M / 2 + STRUT_MARGIN_M
         pose = self.structure_T_tag(tag)
@@ -698,7 +698,8 @@ class SurveyPlanner:
         if not len(nodes) or not len(views):
             return out
         h = self.model.tags[tag].size_m / 2
-        cams = np.array([self.structure_T_camera(v).translation() for v in views])     # (V, 3)
+        if cams is None:
+            cams = np.array([self.structure_T_camera(v).translation() for v in views])     # (V, 3)
 
         def near(ends: np.ndarray, hubs: np.ndarray, r: float) -> np.ndarray:
             """(V, P, N) whether the line from each camera to each of `ends` (V, P, 3), on its
