@@ -552,7 +552,8 @@ class BorgProcedure:
         the graph's current calibration of the rig puts it (turntable axis, Stewart base, lift,
         camera mount), the calibrated intrinsics, every tag the graph has estimated where it
         estimates it (so the structure as built hides what it really hides), the rest where the
-        design has them -- and not counting on a view near one that missed a tag of the module."""
+        design has them, a deployable measured short with its top face where it was measured -- and
+        not counting on a view near one that missed a tag of the module."""
         from estimation.rig_model import ViewMotion
 
         slam = self.measure.slam
@@ -569,7 +570,8 @@ class BorgProcedure:
             for t in tags:
                 if t not in seen:
                     missed.setdefault(t, []).append(view)
-        return self.planner.adapted(camera, slam.tag_estimates(), self.measure.detector_camera[0], missed)
+        short = {m: check.height_m for m, check in slam.not_deployed().items()}
+        return self.planner.adapted(camera, slam.tag_estimates(), self.measure.detector_camera[0], missed, short)
 
     def _replan(self, name: str, missing: list[int], taken: list[View], budget: int) -> SurveyPlan:
         """Views for `missing` tags, none of `taken`, at most `budget`, from the adapted planner:

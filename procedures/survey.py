@@ -171,6 +171,7 @@ class SurveyPlanner:
         self._camera_of: Callable[[View], Pose3] | None = None    # an adapted planner's camera poses
         self._tag_poses: dict[int, Pose3] = {}                     # ... and tag poses (else the design)
         self._missed: dict[int, list[View]] = {}                   # ... and where tags were not seen
+        self._deployed: dict[str, float] = {}                      # ... and deployables measured short
         self._facing_cache: dict[int, list[View]] = {}
         self._cover_cache: dict[View, np.ndarray] = {}
         self._ok_cache: dict[int, tuple[Sequence[View], np.ndarray]] = {}
@@ -248,7 +249,8 @@ class SurveyPlanner:
         return pose if pose is not None else self.model.tags[tag].structure_T_tag
 
     def adapted(self, structure_T_camera: Callable[[View], Pose3], tag_poses: dict[int, Pose3],
-                K: np.ndarray | None = None, missed: dict[int, list[View]] | None = None) -> "SurveyPlanner":
+                K: np.ndarray | None = None, missed: dict[int, list[View]] | None = None,
+                deployed_m: dict[str, float] | None = None) -> "SurveyPlanner":
         """The same candidates (heights, turntable angles, platform poses), judged from what a run
         has learnt: each view's camera where the calibrated rig puts it (`structure_T_camera`,
         e.g. the graph's current calibration), the tags where the graph estimates them
@@ -256,7 +258,9 @@ class SurveyPlanner:
         tag -> views taken that were expected to show it and did not; a candidate from nearly the
         same place (the same lift height, the turntable within `MISSED_TURN_RAD`) is not counted
         on to show it either (what hid it -- a strut, glare, an edge of the frame the prediction
-        puts just inside -- is likely to hide it again)."""
+        puts just inside -- is likely to hide it again).  `deployed_m`: deployables the graph
+        measured short, module -> measured lift (m): their top faces, and the struts to them, stand
+        that much lower than the design's (`_struts`), and hide what they hide there."""
         import copy
 
         out = copy.copy(self)
@@ -265,6 +269,7 @@ class SurveyPlanner:
         out._camera_of = structure_T_camera
         out._tag_poses = dict(tag_poses)
         out._missed = {t: list(v) for t, v in (missed or {}).items() if v}
+        out._deployed = {m: float(h) for m, h in (deployed_m or {}).items() if 0.0 < h < self.model.spacing_m}
         if K is not None:
             out.camera = replace(self.camera, K=np.asarray(K, float))
         out._geometry_cache, out._cover_cache, out._ok_cache = {}, {}, {}
@@ -639,12 +644,30 @@ class SurveyPlanner:
         return out
 
     def _struts(self, placed_modules: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        """(S, 3) starts and ends of the struts the placed modules brought (the design's nodes)."""
+        """(S, 3) starts and ends of the struts the placed modules brought: at the design's nodes,
+        but a deployable measured short (`adapted(deployed_m=...)`) has its top face lowered by what
+        it lacks, and every strut to those nodes goes there (a node stands where the first module
+        that brought it put it).  At N = 7, 186D deployed to 0.35 m swung a diagonal of its face
+        across tag 317 of 227S, above it, in each of the 12 views planned from the design."""
         edges = {e for name in placed_modules for e in self.model.module_by_name[name].edges}
         if not edges:
             return np.zeros((0, 3)), np.zeros((0, 3))
         e = np.array(sorted(edges))
-        return self.model.nodes[e[:, 0]], self.model.nodes[e[:, 1]]
+        nodes = self.model.nodes
+        if self._deployed and any(name in self._deployed for name in placed_modules):
+            nodes = nodes.copy()
+            claimed: set[int] = set()
+            for name in placed_modules:
+                m = self.model.module_by_name[name]
+                fresh = [int(i) for i in m.nodes if int(i) not in claimed]
+                claimed.update(fresh)
+                height = self._deployed.get(name)
+                if height is None or not fresh:
+                    continue
+                bottom = min(float(self.model.nodes[i][2]) for i in m.nodes)
+                top = [i for i in fresh if self.model.nodes[i][2] > bottom + 1e-9]
+                nodes[top, 2] -= self.model.spacing_m - height
+        return nodes[e[:, 0]], nodes[e[:, 1]]
 
     def _behind_struts(self, tag: int, views: Sequence[View], segments: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """(V,) whether a strut or a node hub crosses the line of sight from each view to the tag's
