@@ -643,6 +643,20 @@ class SurveyPlanner:
                         out[v] = [t for t in out[v] if t != tag]
         return out
 
+    def hidden_by_struts(self, module: str, placed_modules: Sequence[str], views: Sequence[View],
+                         expected: Sequence[Sequence[int]]) -> list[tuple[View, int]]:
+        """(view, tag) of the module's sightings `expected` in `views` (a plan's) that the struts
+        built so far hide (`_behind_struts`, with this planner's struts: a deployable measured short
+        where it was measured, `adapted(deployed_m=...)`)."""
+        segments = self._struts(placed_modules)
+        out: list[tuple[View, int]] = []
+        if not len(segments[0]):
+            return out
+        for tag in self.model.module_by_name[module].tags:
+            of = [v for v, seen in zip(views, expected) if tag in seen]
+            out += [(v, tag) for v, hidden in zip(of, self._behind_struts(tag, of, segments)) if hidden]
+        return out
+
     def _struts(self, placed_modules: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
         """(S, 3) starts and ends of the struts the placed modules brought: at the design's nodes,
         but a deployable measured short (`adapted(deployed_m=...)`) has its top face lowered by what
