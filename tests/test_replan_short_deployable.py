@@ -23,6 +23,18 @@ from sim_devices.world import SimWorld
 N, MODULE, TAG, SHORT, HEIGHT = 7, "227S", 317, "186D", 0.35
 
 
+def _read(world: SimWorld, kin: StewartKinematics, detector: TagDetector, view: View) -> set[int]:
+    """The tags the detector reads in the simulated camera's frame from `view` (the devices set
+    there at once, with the rig's true errors; the frame as the camera sends it)."""
+    world.turntable = Axis(view.turntable_rad, 1.0, 0.0)
+    world.stewart_legs = Axis(kin.inverse(view.stewart_pose).legs_m, 1.0, 0.0)
+    world.lift = Axis(view.lift_m, 1.0, 0.0)
+    for axis in (world.turntable, world.stewart_legs, world.lift):
+        axis.moves = 1
+    data, _ = encode_frame(world.render(), world.camera.jpeg_quality)
+    return {d.tag_id for d in detector.detect(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR))}
+
+
 @pytest.fixture(scope="module")
 def bench():
     rig = load_rig().for_borg(N)
@@ -43,17 +55,7 @@ def bench():
     precision = PrecisionTarget(sigma_m=v.sigma_target_m, max_views=v.max_views, corner_sigma_px=v.corner_sigma_px)
     detector = TagDetector(intr.K, intr.dist, {t: s.size_m for t, s in model.tags.items()})
 
-    def seen(view: View) -> set[int]:
-        """The tags the detector reads in the simulated camera's frame from `view`."""
-        world.turntable = Axis(view.turntable_rad, 1.0, 0.0)
-        world.stewart_legs = Axis(kin.inverse(view.stewart_pose).legs_m, 1.0, 0.0)
-        world.lift = Axis(view.lift_m, 1.0, 0.0)
-        for axis in (world.turntable, world.stewart_legs, world.lift):
-            axis.moves = 1
-        data, _ = encode_frame(world.render(), world.camera.jpeg_quality)
-        return {d.tag_id for d in detector.detect(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR))}
-
-    return planner, placed, precision, seen
+    return planner, placed, precision, lambda view: _read(world, kin, detector, view)
 
 
 def test_the_struts_of_a_short_deployable_stand_where_it_was_measured(bench):
@@ -119,16 +121,9 @@ def test_a_plan_a_short_deployable_crosses_is_made_again_before_its_views_are_ta
         for name in names:
             world.borg.place(name)
         detector = TagDetector(proc.intrinsics.K, proc.intrinsics.dist, {t: s.size_m for t, s in proc.model.tags.items()})
-        kin = proc.kinematics
 
         def shows(view: View) -> bool:
-            world.turntable = Axis(view.turntable_rad, 1.0, 0.0)
-            world.stewart_legs = Axis(kin.inverse(view.stewart_pose).legs_m, 1.0, 0.0)
-            world.lift = Axis(view.lift_m, 1.0, 0.0)
-            for axis in (world.turntable, world.stewart_legs, world.lift):
-                axis.moves = 1
-            data, _ = encode_frame(world.render(), world.camera.jpeg_quality)
-            return 120 in {d.tag_id for d in detector.detect(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR))}
+            return 120 in _read(world, proc.kinematics, detector, view)
 
         old = [v for v, seen in zip(before.views, before.expected) if 120 in seen]
         new = [v for v, seen in zip(after.views, after.expected) if 120 in seen]
