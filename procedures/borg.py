@@ -523,7 +523,7 @@ class BorgProcedure:
         re-plan after they miss (at N = 7, 227S's 12 views all crossed by a strut of 186D,
         deployed to 0.35 m of 0.5 m: `unverified`).  A run with every deployable deployed keeps
         its plans as they were."""
-        short = {m: check.height_m for m, check in self.measure.slam.not_deployed().items()}
+        short = self._short_deployables()
         if not short or not plan.views:
             return plan
         placed = list(self.measure.placed) + ([] if name in self.measure.placed else [name])
@@ -534,13 +534,21 @@ class BorgProcedure:
         again = self._adapted_planner(name).plan(name, placed, self.precision)
         if not again.views:
             return plan
-        lowered = ", ".join(sorted(m for m in short if m in placed))
+        lowered = ", ".join(m for m in placed if m in short)
         note = (f"{len(hidden)} planned sighting(s) of tag {', '.join(str(t) for t in sorted({t for _, t in hidden}))} "
                 f"behind the struts of {lowered}, measured short")
         console_of(run).line(f"{name}: {note}; {len(again.views)} view(s) re-planned before any was taken")
         self._plan_notes[name] = f"planned again before its views: {note}"
         self.surveys[name] = again
         return again
+
+    def _short_deployables(self) -> dict[str, float]:
+        """Deployables the graph measured short of their lift: module -> measured lift (m).  One
+        flagged for its top plane's tilt or offset stands at its full height, its struts where the
+        design has them to a few mm."""
+        slam = self.measure.slam
+        return {m: check.height_m for m, check in slam.not_deployed().items()
+                if check.height_m < self.model.spacing_m - slam.config.height_tol_m}
 
     def _missing_tags(self, name: str, result: Verdict, plan: SurveyPlan | None) -> list[int]:
         """Tags of the module the step's views should have measured and did not: a tag the round's
@@ -603,8 +611,8 @@ class BorgProcedure:
             for t in tags:
                 if t not in seen:
                     missed.setdefault(t, []).append(view)
-        short = {m: check.height_m for m, check in slam.not_deployed().items()}
-        return self.planner.adapted(camera, slam.tag_estimates(), self.measure.detector_camera[0], missed, short)
+        return self.planner.adapted(camera, slam.tag_estimates(), self.measure.detector_camera[0], missed,
+                                    self._short_deployables())
 
     def _replan(self, name: str, missing: list[int], taken: list[View], budget: int) -> SurveyPlan:
         """Views for `missing` tags, none of `taken`, at most `budget`, from the adapted planner:
