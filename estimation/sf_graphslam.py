@@ -533,30 +533,37 @@ class SfGraphSlam:
             raise ValueError("the bound needs the camera (K, dist)")
         g = gtsam.NonlinearFactorGraph()
         for spec in self.specs[:upto]:
-            kind = spec[0]
-            if kind == "as_is":
-                g.add(spec[1])
-            elif kind == "rig_prior":
-                _, f, key, mean = spec
-                if rig_prior_sigma is None:
-                    g.add(f)
-                else:
-                    g.add(gtsam.PriorFactorPose3(key, mean, gtsam.noiseModel.Isotropic.Sigma(6, rig_prior_sigma)))
-            elif kind == "turntable_tag":
-                _, key, mean, noise, size = spec
-                if turntable_tag_sigma_m is not None:
-                    noise = tag_prior_noise(turntable_tag_sigma_m, size)
-                g.add(gtsam.PriorFactorPose3(key, mean, noise))
-            elif kind == "chain":
-                assert self.rig is not None
-                g.add(chain_factor(self.rig, spec[1], spec[2], chain_noise(spec[1]) if chain_noise else None))
-            elif kind == "corners":
-                _, ck, tk, size, scale, sk, lens = spec
-                # the measurement is irrelevant to the covariance; only the Jacobians at the truth count
-                # (the lens's basis, read at the corners as measured, moves by < 1 px at the truth)
-                g.add(corner_factor(ck, tk, np.zeros((4, 2)), tag_object_points(size), corner_sigma_px * scale,
-                                    robust_k=None, fixed=self._cal, scale_key=sk, distortion=lens))
+            f = self.bound_factor(spec, corner_sigma_px, chain_noise, rig_prior_sigma, turntable_tag_sigma_m)
+            if f is not None:
+                g.add(f)
         return g
+
+    def bound_factor(self, spec: tuple, corner_sigma_px: float, chain_noise=None, rig_prior_sigma: float | None = None,
+                     turntable_tag_sigma_m: float | None = None) -> gtsam.NonlinearFactor | None:
+        """One factor of `bound_graph`, from its spec (None: a kind the bound leaves out)."""
+        kind = spec[0]
+        if kind == "as_is":
+            return spec[1]
+        if kind == "rig_prior":
+            _, f, key, mean = spec
+            if rig_prior_sigma is None:
+                return f
+            return gtsam.PriorFactorPose3(key, mean, gtsam.noiseModel.Isotropic.Sigma(6, rig_prior_sigma))
+        if kind == "turntable_tag":
+            _, key, mean, noise, size = spec
+            if turntable_tag_sigma_m is not None:
+                noise = tag_prior_noise(turntable_tag_sigma_m, size)
+            return gtsam.PriorFactorPose3(key, mean, noise)
+        if kind == "chain":
+            assert self.rig is not None
+            return chain_factor(self.rig, spec[1], spec[2], chain_noise(spec[1]) if chain_noise else None)
+        if kind == "corners":
+            _, ck, tk, size, scale, sk, lens = spec
+            # the measurement is irrelevant to the covariance; only the Jacobians at the truth count
+            # (the lens's basis, read at the corners as measured, moves by < 1 px at the truth)
+            return corner_factor(ck, tk, np.zeros((4, 2)), tag_object_points(size), corner_sigma_px * scale,
+                                 robust_k=None, fixed=self._cal, scale_key=sk, distortion=lens)
+        return None
 
     def _marginal(self, tag: int) -> np.ndarray | None:
         try:
