@@ -162,12 +162,15 @@ class Measurement:
             out.append((self.slam.camera_pose(k), cov))
         return out
 
-    def tag_estimates(self) -> dict[int, tuple[Pose3, np.ndarray | None]]:
+    def tag_estimates(self, covariance_of: set[int] | None = None) -> dict[int, tuple[Pose3, np.ndarray | None]]:
+        """Every tag's estimate, with its marginal covariance (only the tags `covariance_of`, if given)."""
         out = {}
         for t, p in self.slam.tag_estimates().items():
-            try:
-                c = self.slam.tag_covariance(t)
-            except RuntimeError:
-                c = None
+            c = None
+            if covariance_of is None or t in covariance_of:
+                try:
+                    c = self.slam.tag_covariance(t)
+                except RuntimeError:
+                    c = None
             out[t] = (p, c)
         return out
