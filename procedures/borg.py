@@ -199,6 +199,7 @@ class BorgProcedure:
         self._corner_sq: list[float] = []              # simulation: squared corner errors against the truth
         self._run_bound: tuple[tuple, Any] | None = None  # simulation: (what it is of, estimation.bound.RunBound)
         self._rounds_logged = 0
+        self._views_encoded: Any = None                # the checkpoint's views, each encoded once
         self.homed = False
 
     # ---- plan and dry run --------------------------------------------------------------------
@@ -884,7 +885,11 @@ class BorgProcedure:
 
     # ---- checkpoints -------------------------------------------------------------------------
     def checkpoint(self) -> dict[str, Any]:
-        return {"views": self.views_done, "results": {k: v.checkpoint_json() for k, v in self.results.items()},
+        from procedures.runner import EncodedList
+
+        if self._views_encoded is None or self._views_encoded.items is not self.views_done:
+            self._views_encoded = EncodedList(self.views_done)
+        return {"views": self._views_encoded, "results": {k: v.checkpoint_json() for k, v in self.results.items()},
                 "placed": list(self.bench.sim.world.borg.placed) if self.bench.simulated else [],
                 "homed": self.homed,
                 # the survey's inputs, not its result: a resumed run solves them again and gets the

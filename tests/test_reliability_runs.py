@@ -280,3 +280,25 @@ def test_a_resume_killed_during_its_copy_leaves_a_half_copy_the_next_resume_drop
     assert r.returncode == 0, r.stdout + r.stderr
     assert not (interrupted / "run.resume.mcap").exists()
     assert _ends(interrupted / "run.mcap") == list(range(6))
+
+
+def test_a_checkpoints_views_encoded_once_read_back_as_encoded_whole(tmp_path):
+    """The checkpoint's view list is encoded a view at a time across checkpoints (runner.EncodedList):
+    the file reads back as the whole list encoded at once, at every write, indented or not."""
+    import json
+
+    import numpy as np
+
+    from procedures.runner import EncodedList, _atomic_write_json, _json_default
+
+    views: list = []
+    encoded = EncodedList(views)
+    for step in range(3):
+        views.extend({"view": step * 2 + i, "pose": np.eye(4) * (i + 1), "detections": [{"id": i, "c": [0.5, 1e-17]}],
+                      "note": "\\0" + str(i)} for i in range(2))
+        for readable in (False, True):
+            path = tmp_path / f"c{step}{readable}.json"
+            _atomic_write_json(path, {"state": {"views": encoded, "after": [1, 2]}, "time": 3.5}, readable=readable)
+            want = json.loads(json.dumps({"state": {"views": views, "after": [1, 2]}, "time": 3.5},
+                                         default=_json_default))
+            assert json.loads(path.read_text()) == want
