@@ -46,8 +46,19 @@ from estimation.quad_bias import blur_bias
 from estimation.tag_quads import code_bits, edge_blur_px, fit_quads, identify, read_bits, ring_deviation
 from lab.core.geometry import Pose3, Rot3
 
-__all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges",
+__all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges", "TAG_FAMILY",
+           "tag_family_size",
            "apriltag_to_opencv_corners"]
+
+# The tags the detector reads, and how many ids it has: a structure with more tags than that cannot
+# be printed in it (a 9x9x9 BORG has 630 tags, a 10x10x10 926)
+TAG_FAMILY = "AprilTag 36h11"
+TAG_DICTIONARY = cv2.aruco.DICT_APRILTAG_36h11
+
+
+@lru_cache(maxsize=1)
+def tag_family_size() -> int:
+    return int(cv2.aruco.getPredefinedDictionary(TAG_DICTIONARY).bytesList.shape[0])
 
 
 @dataclass(frozen=True)
@@ -227,8 +238,8 @@ class TagDetector:
         # refined quad (`max_bit_errors`)
         params.errorCorrectionRate = 1.0
         self._detector = cv2.aruco.ArucoDetector(
-            cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
-        self._codes = code_bits(cv2.aruco.DICT_APRILTAG_36h11)
+            cv2.aruco.getPredefinedDictionary(TAG_DICTIONARY), params)
+        self._codes = code_bits(TAG_DICTIONARY)
         self._allowed = np.array(sorted(t for t in self.sizes if 0 <= t < len(self._codes)), dtype=np.int64)
 
     def detect(self, image: np.ndarray,

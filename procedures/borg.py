@@ -247,9 +247,24 @@ class BorgProcedure:
 
         return predicted_blind(self.planner, self.rig_survey_plan, self.bench.rig.stewart.station)
 
+    @cached_property
+    def tags_beyond_family(self) -> str | None:
+        """Why the structure's tags cannot be printed in the detector's tag family, or None."""
+        from estimation.fiducials import TAG_FAMILY, tag_family_size
+
+        ids = sorted(self.model.tags)
+        n_ids = tag_family_size()
+        if not ids or ids[-1] < n_ids:
+            return None
+        return (f"borg:{self.model.n} has {len(ids)} tags, ids {ids[0]}..{ids[-1]}, and the tags are {TAG_FAMILY}, "
+                f"ids 0..{n_ids - 1}: the default tags reach N = 8 (docs/hardware.md, \"Tags\")")
+
     def check_observable(self) -> None:
-        """Before anything moves: refuse a run the rig cannot see all of, unless told to go on, and
-        one whose rig survey cannot see the turntable (nothing would calibrate the rig)."""
+        """Before anything moves: refuse a structure whose tags the tag family cannot print, a run
+        the rig cannot see all of, unless told to go on, and one whose rig survey cannot see the
+        turntable (nothing would calibrate the rig)."""
+        if self.tags_beyond_family:
+            raise UserError(f"{self.tags_beyond_family}; nothing moved")
         if self.rig_survey_blind:
             raise UserError(f"{self.rig_survey_blind}; nothing moved")
         if self.unobservable and not self.allow_unobservable:
@@ -266,7 +281,7 @@ class BorgProcedure:
 
     def dry_run_problems(self, steps: list[StepSpec]) -> list[str]:
         tt, st, lift = self.bench.devices.turntable, self.bench.devices.stewart, self.bench.devices.lift
-        problems = []
+        problems = [self.tags_beyond_family] if self.tags_beyond_family else []
         for spec in steps:
             if "rig_survey" in spec.params:
                 if self.rig_survey_blind:
