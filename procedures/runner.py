@@ -279,10 +279,13 @@ def run(procedure: Procedure, run_dir: Path, *, info: dict[str, Any], operator_a
                 with recorder.step(step.name, step.index, step.params):
                     procedure.execute(step, ctx)
                 with shield.held():   # a checkpoint is written whole or not at all
+                    # the summary first: a run killed between the two still has a summary of every
+                    # step its checkpoint holds (killed just after the first step's checkpoint, a
+                    # run had none)
+                    _atomic_write_json(run_dir / SUMMARY, procedure.summary("running", ""))
                     _atomic_write_json(run_dir / CHECKPOINT, {
                         "steps_completed": step.index + 1, "last_step": step.name,
                         "state": procedure.checkpoint(), "time": time.time()}, readable=False)
-                    _atomic_write_json(run_dir / SUMMARY, procedure.summary("running", ""))
                 bar.update(1)
                 if step is not steps[-1]:
                     pause.at_safe_point(step.name, procedure.stop_devices, ctx.operator, recorder)
