@@ -647,7 +647,7 @@ class SurveyPlanner:
     def _sight(self, module: str, placed_modules: Sequence[str], present: set[int],
                views: Sequence[View]) -> dict[View, list[int]]:
         """View -> the present tags it is predicted to read, for `views`.  The module's own tags are
-        checked against the struts built so far too (`_behind_struts`): the visibility model has
+        checked against the struts built so far too (`hidden_by_struts`): the visibility model has
         tags hiding tags, and a strut across a tag's face hides it as surely (at N >= 4 the top
         layer's strut brackets sit behind the struts in front of them from many views)."""
         step = self._step_of_placed(placed_modules)
@@ -658,15 +658,8 @@ class SurveyPlanner:
             out = {v: self.visible(v, present_idx) for v in views}
         if self._missed:
             out = {v: [t for t in seen if not self._missed_near(t, v)] for v, seen in out.items()}
-        segments = self._struts(placed_modules)
-        if len(segments[0]):
-            for tag in self.model.module_by_name[module].tags:
-                views_of = [v for v, seen in out.items() if tag in seen]
-                if not views_of:
-                    continue
-                for v, hidden in zip(views_of, self._behind_struts(tag, views_of, segments)):
-                    if hidden:
-                        out[v] = [t for t in out[v] if t != tag]
+        for v, tag in self.hidden_by_struts(module, placed_modules, list(out), list(out.values())):
+            out[v] = [t for t in out[v] if t != tag]
         return out
 
     def hidden_by_struts(self, module: str, placed_modules: Sequence[str], views: Sequence[View],
@@ -680,7 +673,8 @@ class SurveyPlanner:
             return out
         for tag in self.model.module_by_name[module].tags:
             of = [v for v, seen in zip(views, expected) if tag in seen]
-            out += [(v, tag) for v, hidden in zip(of, self._behind_struts(tag, of, segments)) if hidden]
+            if of:
+                out += [(v, tag) for v, hidden in zip(of, self._behind_struts(tag, of, segments)) if hidden]
         return out
 
     def _struts(self, placed_modules: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
