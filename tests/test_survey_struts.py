@@ -17,9 +17,14 @@ KIN = StewartKinematics(RIG.stewart.geometry)
 CAMERA = CameraModel(K, 1280, 720, RIG.stewart.world_T_base, RIG.stewart.geometry.home_m, RIG.camera.platform_T_camera)
 
 
+def _planner(n: int) -> SurveyPlanner:
+    """The default rig's planner (near station) for an n x n x n BORG."""
+    return SurveyPlanner(build_borg(n), CAMERA, lambda pose: KIN.inverse(pose).reachable,
+                         (RIG.turntable.min_rad, RIG.turntable.max_rad), lift_limits_m=(RIG.lift.min_m, RIG.lift.max_m))
+
+
 def test_a_first_plan_does_not_count_on_a_view_a_strut_crosses():
-    p = SurveyPlanner(build_borg(4), CAMERA, lambda pose: KIN.inverse(pose).reachable,
-                      (RIG.turntable.min_rad, RIG.turntable.max_rad), lift_limits_m=(RIG.lift.min_m, RIG.lift.max_m))
+    p = _planner(4)
     names = [m.name for m in p.model.modules]
     module = "102S"
     placed = names[:names.index(module) + 1]
@@ -55,8 +60,7 @@ def _hub_hides(cam: np.ndarray, pts: np.ndarray, hubs: np.ndarray, normal: np.nd
 def test_the_struts_pruned_by_the_central_line_give_the_answer_of_every_strut():
     from procedures.survey import STRUT_DIAMETER_M, STRUT_MARGIN_M, _face_grid, _segments_within
 
-    p = SurveyPlanner(build_borg(4), CAMERA, lambda pose: KIN.inverse(pose).reachable,
-                      (RIG.turntable.min_rad, RIG.turntable.max_rad), lift_limits_m=(RIG.lift.min_m, RIG.lift.max_m))
+    p = _planner(4)
     placed = [m.name for m in p.model.modules]
     a, b = p._struts(placed)
     hidden = 0
@@ -110,8 +114,7 @@ def test_a_tag_few_candidate_views_see_gets_the_lifts_other_views_for_its_accura
     at a 1-sigma of 1-2 mm in three seeds of five)."""
     from procedures.survey import PrecisionTarget
 
-    p = SurveyPlanner(build_borg(6), CAMERA, lambda pose: KIN.inverse(pose).reachable,
-                      (RIG.turntable.min_rad, RIG.turntable.max_rad), lift_limits_m=(RIG.lift.min_m, RIG.lift.max_m))
+    p = _planner(6)
     names = [m.name for m in p.model.modules]
     module = "135S"
     placed = names[:names.index(module) + 1]
