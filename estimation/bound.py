@@ -32,7 +32,7 @@ class RunBound:
         self.slam = slam
         self._noise = (chain_noise, rig_prior_sigma, turntable_tag_sigma_m)
         self._linear: list[gtsam.GaussianFactor | None] = []       # per spec, in spec order
-        self._unit: dict[int, np.ndarray] = {}                      # corner spec -> ones, one per row
+        self._corners: set[int] = set()                             # the corner factors' spec indices
         self._keys: list[tuple[int, ...]] = []                      # per spec, the variables it touches
         self._at: dict[int, np.ndarray] = {}                        # pose key -> the truth it was linearised at
         self._graph = gtsam.GaussianFactorGraph()
@@ -59,8 +59,8 @@ class RunBound:
                 self._graph.push_back(self._linear[i])
         if corner_sigma_px != self._sigma or moved:
             # new corner factors took the last sigma (`_linearise`); every one takes this one
-            for i, unit in self._unit.items():
-                self._linear[i].setModel(False, unit * corner_sigma_px)
+            for i in self._corners:
+                self._linear[i].setModel(False, np.full(self._linear[i].rows(), corner_sigma_px))
         self._sigma = corner_sigma_px
         marginals = gtsam.Marginals(self._graph, gtsam.VectorValues())
         return {k: marginals.marginalCovariance(k) for k in keys}
@@ -78,8 +78,8 @@ class RunBound:
         self._keys[i] = keys
         lin = f.linearize(truth)
         if corner:
-            self._unit[i] = np.ones(lin.rows())
-            lin.setModel(False, self._unit[i] * (self._sigma if self._sigma is not None else 1.0))
+            self._corners.add(i)
+            lin.setModel(False, np.full(lin.rows(), self._sigma if self._sigma is not None else 1.0))
         self._linear[i] = lin
         for k in keys:
             if k not in self._at:
