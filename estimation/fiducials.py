@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 
 from estimation.quad_bias import blur_bias
+from estimation.tag_family import EXTENDED, dictionary, family_for, family_name, family_size
 from estimation.tag_quads import code_bits, edge_blur_px, fit_quads, identify, read_bits, ring_deviation
 from lab.core.geometry import Pose3, Rot3
 
@@ -50,15 +51,13 @@ __all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "r
            "tag_family_size",
            "apriltag_to_opencv_corners"]
 
-# The tags the detector reads, and how many ids it has: a structure with more tags than that cannot
-# be printed in it (a 9x9x9 BORG has 630 tags, a 10x10x10 926)
-TAG_FAMILY = "AprilTag 36h11"
-TAG_DICTIONARY = cv2.aruco.DICT_APRILTAG_36h11
+# The largest tag family the detector reads (`estimation.tag_family`): a structure with more tags
+# than it has codes cannot be printed (a 10x10x10 BORG has 926 tags)
+TAG_FAMILY = family_name(EXTENDED)
 
 
-@lru_cache(maxsize=1)
 def tag_family_size() -> int:
-    return int(cv2.aruco.getPredefinedDictionary(TAG_DICTIONARY).bytesList.shape[0])
+    return family_size(EXTENDED)
 
 
 @dataclass(frozen=True)
@@ -220,7 +219,9 @@ def partly_hidden(corners: Sequence[np.ndarray], distances: Sequence[float], qui
 
 class TagDetector:
     """Detects AprilTag 36h11 tags and estimates their poses.  `sizes` gives the black-square
-    edge per tag id (unknown ids are ignored: they are not ours)."""
+    edge per tag id (unknown ids are ignored: they are not ours).  Ids beyond 36h11's 587 are read
+    in the lab's extension of it (`estimation.tag_family`); a detector whose ids fit 36h11 reads
+    36h11 alone, at its larger Hamming distance."""
 
     def __init__(self, K: np.ndarray, dist: np.ndarray | Sequence[float], sizes: Mapping[int, float],
                  config: DetectorConfig | None = None) -> None:
@@ -237,9 +238,9 @@ class TagDetector:
         # propose with up to its dictionary's 5 corrected bits and decide on our own read of the
         # refined quad (`max_bit_errors`)
         params.errorCorrectionRate = 1.0
-        self._detector = cv2.aruco.ArucoDetector(
-            cv2.aruco.getPredefinedDictionary(TAG_DICTIONARY), params)
-        self._codes = code_bits(TAG_DICTIONARY)
+        self.family = family_for(max(self.sizes, default=0)) or EXTENDED
+        self._detector = cv2.aruco.ArucoDetector(dictionary(self.family), params)
+        self._codes = code_bits(self.family)
         self._allowed = np.array(sorted(t for t in self.sizes if 0 <= t < len(self._codes)), dtype=np.int64)
 
     def detect(self, image: np.ndarray,

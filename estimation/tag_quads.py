@@ -52,6 +52,8 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
+from estimation.tag_family import BASE, dictionary
+
 __all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "identify", "ring_deviation", "edge_blur_px", "MIN_ROWS"]
 
 CELLS = 8                 # AprilTag 36h11: 6x6 data cells inside a one-cell black border
@@ -510,10 +512,11 @@ def fit_quads(grey: np.ndarray, quads: np.ndarray, camera: tuple[np.ndarray, np.
 
 
 @lru_cache(maxsize=4)
-def code_bits(dictionary_id: int = cv2.aruco.DICT_APRILTAG_36h11) -> np.ndarray:
-    """(n_ids, 8, 8) bool: every marker of an OpenCV dictionary as printed, border included, True
-    where the cell is white, in the dictionary's own orientation (corner 0 at top-left)."""
-    d = cv2.aruco.getPredefinedDictionary(dictionary_id)
+def code_bits(family: str = BASE) -> np.ndarray:
+    """(n_ids, 8, 8) bool: every code of a tag family (`estimation.tag_family`) as printed, border
+    included, True where the cell is white, in the dictionary's own orientation (corner 0 at
+    top-left)."""
+    d = dictionary(family)
     n = d.bytesList.shape[0]
     side = d.markerSize + 2
     return np.stack([cv2.aruco.generateImageMarker(d, i, side, borderBits=1) > 127 for i in range(n)])

@@ -249,15 +249,15 @@ class BorgProcedure:
 
     @cached_property
     def tags_beyond_family(self) -> str | None:
-        """Why the structure's tags cannot be printed in the detector's tag family, or None."""
+        """Why the structure's tags cannot be printed in the detector's largest tag family, or None."""
         from estimation.fiducials import TAG_FAMILY, tag_family_size
 
         ids = sorted(self.model.tags)
         n_ids = tag_family_size()
         if not ids or ids[-1] < n_ids:
             return None
-        return (f"borg:{self.model.n} has {len(ids)} tags, ids {ids[0]}..{ids[-1]}, and the tags are {TAG_FAMILY}, "
-                f"ids 0..{n_ids - 1}: the default tags reach N = 8 (docs/hardware.md, \"Tags\")")
+        return (f"borg:{self.model.n} has {len(ids)} tags, ids {ids[0]}..{ids[-1]}, and the largest tag family is "
+                f"{TAG_FAMILY}, ids 0..{n_ids - 1} (docs/hardware.md, \"Tags\")")
 
     def check_observable(self) -> None:
         """Before anything moves: refuse a structure whose tags the tag family cannot print, a run

@@ -51,7 +51,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Iterable, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -59,7 +59,7 @@ from scipy.special import ndtr
 
 from lab.core.geometry import Pose3
 
-__all__ = ["TagToRender", "TagLook", "Defocus", "render_tags", "render_grey", "tag_corners_px", "pixel_edge_response",
+__all__ = ["TagToRender", "TagLook", "Defocus", "render_tags", "render_grey", "tag_corners_px", "draw_tags", "pixel_edge_response",
            "sensor_readout", "vignetting_gain", "lighting_field", "distortion_with_error", "QUIET_ZONE_CELLS",
            "COC_DIAMETER_PER_SIGMA"]
 
@@ -181,18 +181,30 @@ def distortion_with_error(K: np.ndarray, dist: Sequence[float] | np.ndarray, wid
     return d
 
 
-@lru_cache(maxsize=1)
-def _dictionary() -> cv2.aruco.Dictionary:
-    return cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
+# AprilTag 36h11 has 587 codes; a structure with more tags is printed in the lab's extension of it
+# to 1024 (docs/hardware.md, "Tags"), made here as OpenCV makes it: its first 587 codes are 36h11's
+_BASE_CODES, _EXTENDED_CODES = 587, 1024
+
+
+@lru_cache(maxsize=2)
+def _dictionary(extended: bool) -> cv2.aruco.Dictionary:
+    base = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
+    return cv2.aruco.extendDictionary(_EXTENDED_CODES, 6, base, 0) if extended else base
+
+
+def draw_tags(ids: Iterable[int]) -> None:
+    """Draw these tags now, once: a structure printed in the extension of 36h11 would otherwise pay
+    its generation (~4 s) in its first frame, past a camera client's timeout."""
+    for tag_id in ids:
+        _marker_cells(int(tag_id))
 
 
 @lru_cache(maxsize=1024)
 def _marker_cells(tag_id: int) -> np.ndarray:
     """The tag at one pixel per cell, quiet zone included, as float32 in [0, 1]."""
-    n_ids = _dictionary().bytesList.shape[0]
-    if not 0 <= tag_id < n_ids:
-        raise ValueError(f"tag id {tag_id} is outside AprilTag 36h11's 0..{n_ids - 1}")
-    img = cv2.aruco.generateImageMarker(_dictionary(), int(tag_id), _CELLS, borderBits=1)
+    if not 0 <= tag_id < _EXTENDED_CODES:
+        raise ValueError(f"tag id {tag_id} is outside the printed tags' 0..{_EXTENDED_CODES - 1}")
+    img = cv2.aruco.generateImageMarker(_dictionary(tag_id >= _BASE_CODES), int(tag_id), _CELLS, borderBits=1)
     q = int(np.ceil(QUIET_ZONE_CELLS))
     img = cv2.copyMakeBorder(img, q, q, q, q, cv2.BORDER_CONSTANT, value=255)
     return (img.astype(np.float32) / 255.0)

@@ -62,7 +62,7 @@ from lab.core.scenario import BorgFault, Scenario
 from lab.core.structures.borg import BorgModel, build_borg
 from sim_devices.ipjr import IpjrActuator
 from sim_devices.motion import Axis
-from sim_devices.render import Defocus, TagLook, distortion_with_error, lighting_field, vignetting_gain
+from sim_devices.render import Defocus, TagLook, distortion_with_error, draw_tags, lighting_field, vignetting_gain
 from sim_devices.stewart import platform_pose
 from sim_devices.truss_geometry import TrussOccluders, in_camera, truss_occluders
 
@@ -349,6 +349,8 @@ class SimWorld:
             except ValueError as exc:
                 raise UserError(str(exc)) from None
             self.borg = BorgTruth(model)
+            if rig.camera:
+                draw_tags(model.tags)
             sig = self.rig_error.turntable_tag_sigma_m
             if sig > 0:
                 rng = np.random.default_rng([self.seed, _STREAM_TT_TAGS])

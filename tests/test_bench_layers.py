@@ -64,8 +64,7 @@ def test_the_figures_count_per_layer_and_per_size():
 @pytest.mark.parametrize("args, match", [(["--sizes", "3,11"], "--sizes must be in 2..10"),
                                          (["--sizes", "3,x"], "--sizes: expected integers"),
                                          (["--seeds", "0"], "--seeds >= 1"),
-                                         (["--speedup", "0"], "--speedup must be in"),
-                                         (["--sizes", "4,9"], "borg:9 has 630 tags, more than AprilTag 36h11's 587 ids")])
+                                         (["--speedup", "0"], "--speedup must be in")])
 def test_bad_input_is_one_line_exit_2(lab, args, match):
     code, out, err = lab.main("bench", "layers", *args)
     assert code == 2 and match in err and len(err.strip().splitlines()) == 1, err
