@@ -10,7 +10,10 @@ the graph's corner noise, the camera pose's uncertainty) reaches `PrecisionTarge
 view budget is spent.  `more_views` does the same during the run, starting from the module's
 covariance in the graph, when its verdict came out `uncertain`.  Visibility is predicted, not guaranteed: a tag is
 expected in a view when its four corners project into the image with a margin, it is large enough
-to decode, it faces the camera within `max_view_angle`, and no nearer tag's outline covers it.
+to decode, it faces the camera within `max_view_angle`, and no nearer tag covers it: neither a
+quarter of its image box (`occlusion_overlap`) nor, by the detector's own rule
+(`estimation.fiducials.partly_hidden`), the band around its black square with its quiet zone -- a
+nearer tag's white border across one corner is enough for the detector to drop the tag.
 
 A rig with a lift (a vertical stage under the Stewart base) gives the candidates heights too: the
 planner picks the fewest heights, from a grid over the lift's travel, that see every module of the
@@ -25,9 +28,10 @@ from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Callable, Iterable, Sequence
 
+import cv2
 import numpy as np
 
-from estimation.fiducials import tag_object_points
+from estimation.fiducials import HIDDEN_MIN_OVERLAP_CELLS2, DetectorConfig, tag_object_points
 from estimation.precision import covariance_from_information, module_sigma, view_information
 from estimation.semantics import STRUT_END_DIAMETER_M as STRUT_DIAMETER_M
 from lab.core.geometry import Pose3, Rot3, from_xyzrpy
@@ -44,6 +48,12 @@ def unoccluded(lo: np.ndarray, hi: np.ndarray, rows: np.ndarray, overlap: float)
                     axis=2)
     inter[np.arange(len(lo))[None, :] >= rows[:, None]] = 0.0     # only nearer ones (earlier) cover
     return inter.max(axis=1, initial=0.0) <= overlap * area
+
+
+# the detector's hiding rule (`estimation.fiducials.partly_hidden`) as the run's detector applies it:
+# a tag's quiet zone is one cell wide, and its black square counts grown by the detector's margin
+_QUIET_CELLS = 1.0
+_HIDDEN_MARGIN_CELLS = float(DetectorConfig().hidden_margin_cells or 0.0)
 
 
 @dataclass(frozen=True)
@@ -154,6 +164,13 @@ class _ViewGeometry:
     depth: np.ndarray       # (T,) m
     lo: np.ndarray          # (T, 2) px
     hi: np.ndarray          # (T, 2) px
+    # the detector's hiding rule, for the tags facing the view only (row `row[t]`, -1 for the rest):
+    # each tag's outer edge (black square and quiet zone), its black square grown by the detector's
+    # margin, and its cell's area (px^2)
+    row: np.ndarray         # (T,) int
+    outer: np.ndarray       # (F, 4, 2) px, float32
+    inner: np.ndarray       # (F, 4, 2) px, float32
+    cell_px2: np.ndarray    # (F,)
 
 
 class SurveyPlanner:
@@ -288,25 +305,62 @@ class SurveyPlanner:
         facing = (dist <= c.max_distance_m) & (np.einsum("ij,ij->i", normals, to_cam) / dist >= np.cos(c.max_view_angle_rad))
         # only the tags facing the camera can be read: project those (the others' rows stay NaN)
         f = np.flatnonzero(facing)
-        pc = self._tag_corners[f] @ c_T_s[:3, :3].T + c_T_s[:3, 3]
+        corners = self._tag_corners[f]
+        pc = corners @ c_T_s[:3, :3].T + c_T_s[:3, 3]
         front = np.all(pc[:, :, 2] >= 0.1, axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = (pc / pc[:, :, 2:3]) @ self.camera.K.T
         uv = uv[:, :, :2]
+        # the detector's hiding rule's quads: the black square grown in the tag's plane, imaged
+        # (`fiducials.grown_quad` grows it through the square's homography: the same quads)
+        centre = corners.mean(axis=1, keepdims=True)
+        grown = []
+        for cells in (_QUIET_CELLS, _HIDDEN_MARGIN_CELLS):
+            pg = (centre + (corners - centre) * (4.0 + cells) / 4.0) @ c_T_s[:3, :3].T + c_T_s[:3, 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                grown.append(((pg / pg[:, :, 2:3]) @ self.camera.K.T)[:, :, :2].astype(np.float32))
+        e = np.roll(uv, -1, axis=1) - uv
+        cell_px2 = 0.5 * np.abs(np.sum(uv[:, :, 0] * np.roll(uv[:, :, 1], -1, axis=1)
+                                       - np.roll(uv[:, :, 0], -1, axis=1) * uv[:, :, 1], axis=1)) / 64.0
+        row = np.full(len(facing), -1)
+        row[f] = np.arange(len(f))
         lo_f, hi_f = uv.min(axis=1), uv.max(axis=1)
         inside = ((lo_f[:, 0] >= c.margin_px) & (lo_f[:, 1] >= c.margin_px)
                   & (hi_f[:, 0] <= self.camera.width_px - c.margin_px)
                   & (hi_f[:, 1] <= self.camera.height_px - c.margin_px))
-        sides = np.linalg.norm(np.roll(uv, -1, axis=1) - uv, axis=2).min(axis=1)
+        sides = np.linalg.norm(e, axis=2).min(axis=1)
         ok = np.zeros(len(facing), bool)
         ok[f] = front & inside & (sides >= c.min_side_px)
         depth = np.full(len(facing), np.nan)
         depth[f] = pc[:, :, 2].mean(axis=1)
         lo, hi = np.full((len(facing), 2), np.nan), np.full((len(facing), 2), np.nan)
         lo[f], hi[f] = lo_f, hi_f
-        g = _ViewGeometry(ok, depth, lo, hi)
+        g = _ViewGeometry(ok, depth, lo, hi, row, grown[0], grown[1], cell_px2)
         self._geometry_cache[view] = g
         return g
+
+    def _covers(self, g: _ViewGeometry, idx: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), len(idx)): whether tag idx[j] hides tag idx[rows[i]], `idx` sorted nearest
+        first (only nearer ones, earlier in `idx`, hide): its image box covers more than
+        `occlusion_overlap` of the other's, or its outer edge overlaps the other's black square
+        grown by the detector's margin by more than `HIDDEN_MIN_OVERLAP_CELLS2` of its cells (the
+        detector's `partly_hidden`, which drops such a tag)."""
+        lo, hi = g.lo[idx], g.hi[idx]
+        area = np.prod(hi[rows] - lo[rows], axis=1)
+        inter = np.prod(np.clip(np.minimum(hi[rows, None], hi[None]) - np.maximum(lo[rows, None], lo[None]), 0, None),
+                        axis=2)
+        nearer = np.arange(len(idx))[None, :] < rows[:, None]
+        covers = (inter > self.config.occlusion_overlap * area[:, None]) & nearer
+        outer, inner = g.outer[g.row[idx]], g.inner[g.row[idx]]
+        o_lo, o_hi = outer.min(axis=1), outer.max(axis=1)
+        i_lo, i_hi = inner[rows].min(axis=1), inner[rows].max(axis=1)
+        touch = (np.all(o_lo[None] < i_hi[:, None], axis=2) & np.all(i_lo[:, None] < o_hi[None], axis=2)
+                 & nearer & ~covers)
+        for i, j in zip(*np.nonzero(touch)):
+            a, _ = cv2.intersectConvexConvex(outer[j], inner[rows[i]])
+            if a > HIDDEN_MIN_OVERLAP_CELLS2 * g.cell_px2[g.row[idx[rows[i]]]]:
+                covers[i, j] = True
+        return covers
 
     def present_index(self, present: Iterable[int]) -> np.ndarray:
         """`present` (tag ids) as sorted indices into the planner's tag table, for `visible`."""
@@ -330,7 +384,7 @@ class SurveyPlanner:
             rows = rows[[int(self._ids[i]) in wanted for i in idx]]
             if not len(rows):
                 return []
-        keep = unoccluded(g.lo[idx], g.hi[idx], rows, self.config.occlusion_overlap)
+        keep = ~self._covers(g, idx, rows).any(axis=1)
         return [int(t) for t in self._ids[idx[rows[keep]]]]
 
     def _ok(self, views: Sequence[View]) -> np.ndarray:
@@ -384,11 +438,7 @@ class SurveyPlanner:
         idx = np.flatnonzero(g.ok)
         if len(idx):
             idx = idx[np.lexsort((self._ids[idx], g.depth[idx]))]        # nearest first, as `visible`
-            lo, hi = g.lo[idx], g.hi[idx]
-            area = np.prod(hi - lo, axis=1)
-            inter = np.prod(np.clip(np.minimum(hi[:, None], hi[None]) - np.maximum(lo[:, None], lo[None]), 0, None),
-                            axis=2)
-            covers = (inter > self.config.occlusion_overlap * area[:, None]) & np.tri(len(idx), k=-1, dtype=bool)
+            covers = self._covers(g, idx, np.arange(len(idx)))
             steps = np.where(covers, self._step_of[idx][None, :], never)
             c[idx] = steps.min(axis=1)
         self._cover_cache[view] = c

@@ -3,10 +3,12 @@ visibility rules it applies (checked against a plain one-tag-at-a-time reading o
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
 from drivers.stewart_kinematics import StewartKinematics
+from estimation.fiducials import HIDDEN_MIN_OVERLAP_CELLS2, grown_quad
 from lab.core.config import load_rig
 from lab.core.structures.borg import build_borg
 from procedures.survey import CameraModel, SurveyPlanner, View
@@ -97,13 +99,20 @@ def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> lis
             continue
         if np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).min() < c.min_side_px:
             continue
-        boxes.append((pc[:, 2].mean(), tid, uv.min(axis=0), uv.max(axis=0)))
+        boxes.append((pc[:, 2].mean(), tid, uv.min(axis=0), uv.max(axis=0), uv))
     boxes.sort(key=lambda b: (b[0], b[1]))
     seen, kept = [], []
-    for _, tid, lo, hi in boxes:
-        covered = max((np.prod(np.clip(np.minimum(hi, h2) - np.maximum(lo, l2), 0, None)) for l2, h2 in kept), default=0.0)
-        kept.append((lo, hi))
-        if covered <= c.occlusion_overlap * np.prod(hi - lo):
+    for _, tid, lo, hi, uv in boxes:
+        covered = max((np.prod(np.clip(np.minimum(hi, h2) - np.maximum(lo, l2), 0, None)) for l2, h2, _ in kept),
+                      default=0.0)
+        # the detector's rule (fiducials.partly_hidden): a nearer tag's quiet zone across the band
+        # around this one's black square
+        band = grown_quad(uv, 0.5).astype(np.float32)
+        cell = abs(cv2.contourArea(uv.astype(np.float32))) / 64.0
+        crossed = any(cv2.intersectConvexConvex(grown_quad(q, 1.0).astype(np.float32), band)[0]
+                      > HIDDEN_MIN_OVERLAP_CELLS2 * cell for _, _, q in kept)
+        kept.append((lo, hi, uv))
+        if covered <= c.occlusion_overlap * np.prod(hi - lo) and not crossed:
             seen.append(tid)
     return seen
 
