@@ -83,3 +83,49 @@ def test_the_quick_study_verifies_every_layer(lab, tmp_path):
         # docs/benchmarks.md with the command, not a test's: it is missed by up to 0.2 mm at N = 4-5
         assert row["unverified"] == 0 and row["false_flags"] == 0, row
         assert row["error_mm_max"] is None or row["error_mm_max"] > 0, row
+
+
+def _attempt(tmp_path, n=3, speedup=100.0, summary=None, checkpoint=True):
+    from lab.studies import bench_layers as bl
+
+    run_dir, sc = tmp_path / f"n{n}-seed0", tmp_path / f"scenario-n{n}-seed0.toml"
+    run_dir.mkdir()
+    (run_dir / "run.json").write_text(json.dumps({"params": {"n": n, "scenario": str(sc), "speedup": speedup}}))
+    if summary is not None:
+        (run_dir / "summary.json").write_text(json.dumps(summary))
+    if checkpoint:
+        (run_dir / "checkpoint.json").write_text("{}")
+    return bl._earlier_attempt(run_dir, 3, sc, 100.0)
+
+
+@pytest.mark.parametrize("kw, expected", [
+    ({}, "resume"),                                                          # killed: no summary yet
+    ({"summary": {"result": "failed", "reason": "DeviceTimeout: camera: no reply"}}, "resume"),
+    ({"summary": {"result": "completed"}}, "completed"),                    # the study stopped before journaling it
+    ({"summary": {"result": "failed", "reason": "UserError: bad scenario"}}, None),
+    ({"checkpoint": False}, None),
+    ({"n": 4}, None), ({"speedup": 10.0}, None)])                           # another trial's run: start afresh
+def test_a_trial_goes_on_from_an_earlier_attempt_of_its_own_only(tmp_path, kw, expected):
+    assert _attempt(tmp_path, **kw) == expected
+
+
+def test_a_run_stopped_by_a_device_timeout_is_resumed_and_says_so(tmp_path, monkeypatch):
+    from lab.studies import bench_common, bench_layers as bl
+
+    model = build_borg(2)
+    done = {"result": "completed", "views": 3, "modules": [
+        {"name": m.name, "verdict": "ok", "views": 3, "position_error_m": 1e-4, "sigma_position_m": 2e-4, "reason": ""}
+        for m in model.modules]}
+    timeout = {"result": "failed", "reason": "DeviceTimeout: camera: no reply to GET /frame.jpg within 3 s"}
+    calls = []
+    monkeypatch.setattr(bl, "run_borg", lambda args, out, log=None: calls.append("run")
+                        or bench_common.BorgRun(["run"], timeout, 50.0, 400.0, 0.01))
+    replies = iter([timeout, done])
+    monkeypatch.setattr(bl, "resume_borg", lambda out, log=None: calls.append("resume")
+                        or bench_common.BorgRun(["resume"], next(replies), 20.0, 600.0, 0.02))
+    r = bl.trial(tmp_path, 2, 0, 100.0)
+    assert calls == ["run", "resume", "resume"] and r["resumed"] == 2
+    assert r["wall_s"] == pytest.approx(90.0) and r["peak_rss_mb"] == 600.0 and len(r["modules"]) == len(model.modules)
+    row = bl.aggregate([r])[0]
+    assert row["resumed"] == 2 and "| 1 (2 resumed) |" in bl.to_markdown({"rows": [row], "command": "c", "runs": 1,
+                                                                          "wall_s": 1.0})

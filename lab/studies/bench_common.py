@@ -59,10 +59,21 @@ def run_borg(args: Sequence[str], out: Path, log: Path | None = None) -> BorgRun
     a run that wrote no summary is reported with the tail of its stderr."""
     cmd = [sys.executable, "-m", "lab", "run", "borg", "--auto", "--quiet", "--on-flag", "continue", *args,
            "--out", str(out), "--replace"]
+    return _borg_process(cmd, out, log, "w")
+
+
+def resume_borg(out: Path, log: Path | None = None) -> BorgRun:
+    """`lab resume OUT --auto`: an interrupted trial's run goes on from its last completed step
+    (its output appended to `log`).  The BorgRun's wall time and peak memory are the resumed
+    process's own."""
+    return _borg_process([sys.executable, "-m", "lab", "resume", str(out), "--auto"], out, log, "a")
+
+
+def _borg_process(cmd: list[str], out: Path, log: Path | None, mode: str) -> BorgRun:
     t0 = time.perf_counter()
     peak_mb = None
     if log is not None:
-        with open(log, "w") as f:
+        with open(log, mode) as f:
             p = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT)
             _, status, usage = os.wait4(p.pid, 0)
         code, peak_mb = os.waitstatus_to_exitcode(status), usage.ru_maxrss / 1024.0
