@@ -16,7 +16,10 @@ Figures per N and per layer (a module's layer: the cell row its nodes' mean heig
 and per N: the run's wall time per module, its SLAM step (median), its peak memory.
 
 Trials run through `lab.core.executor` (--workers N, or --scheduler on a Dask cluster); finished trials
-are journaled in --out/trials.jsonl, so the same command after an interruption resumes.  A full
+are journaled in --out/trials.jsonl, so the same command after an interruption resumes, and a
+trial whose run was cut off goes on from that run's checkpoint (`lab resume`), as does a run that a
+simulated device's timeout stopped (a camera starved of CPU by the runs beside it: up to
+`MAX_RESUMES` times; the table counts them).  A full
 study (N = 3..10 x 5 seeds) is days of CPU on two cores (one N = 8 run: an hour); `--quick` is N = 3 and 4, one seed.
 """
 
