@@ -31,7 +31,7 @@ from typing import Callable, Iterable, Sequence
 import cv2
 import numpy as np
 
-from estimation.fiducials import HIDDEN_MIN_OVERLAP_CELLS2, DetectorConfig, tag_object_points
+from estimation.fiducials import HIDDEN_MIN_OVERLAP_CELLS2, DetectorConfig, grown_quad, tag_object_points
 from estimation.precision import covariance_from_information, module_sigma, view_information
 from estimation.semantics import STRUT_END_DIAMETER_M as STRUT_DIAMETER_M
 from lab.core.geometry import Pose3, Rot3, from_xyzrpy
@@ -54,6 +54,11 @@ def unoccluded(lo: np.ndarray, hi: np.ndarray, rows: np.ndarray, overlap: float)
 # a tag's quiet zone is one cell wide, and its black square counts grown by the detector's margin
 _QUIET_CELLS = 1.0
 _HIDDEN_MARGIN_CELLS = float(DetectorConfig().hidden_margin_cells or 0.0)
+# how far past its black square's image box a grown square can reach, as a fraction of the box
+# (a square grown by c of its 8 cells reaches c/8 of its side in the tag's plane; perspective is
+# allowed to double that)
+_OUTER_REACH = 2 * _QUIET_CELLS / 8
+_INNER_REACH = 2 * _HIDDEN_MARGIN_CELLS / 8
 
 
 @dataclass(frozen=True)
@@ -164,13 +169,10 @@ class _ViewGeometry:
     depth: np.ndarray       # (T,) m
     lo: np.ndarray          # (T, 2) px
     hi: np.ndarray          # (T, 2) px
-    # the detector's hiding rule, for the tags facing the view only (row `row[t]`, -1 for the rest):
-    # each tag's outer edge (black square and quiet zone), its black square grown by the detector's
-    # margin, and its cell's area (px^2)
+    # the tags facing the view (row `row[t]`, -1 for the rest): their black squares' corners in
+    # the image, for the detector's hiding rule
     row: np.ndarray         # (T,) int
-    outer: np.ndarray       # (F, 4, 2) px, float32
-    inner: np.ndarray       # (F, 4, 2) px, float32
-    cell_px2: np.ndarray    # (F,)
+    quad: np.ndarray        # (F, 4, 2) px
 
 
 class SurveyPlanner:
@@ -311,31 +313,20 @@ class SurveyPlanner:
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = (pc / pc[:, :, 2:3]) @ self.camera.K.T
         uv = uv[:, :, :2]
-        # the detector's hiding rule's quads: the black square grown in the tag's plane, imaged
-        # (`fiducials.grown_quad` grows it through the square's homography: the same quads)
-        centre = corners.mean(axis=1, keepdims=True)
-        grown = []
-        for cells in (_QUIET_CELLS, _HIDDEN_MARGIN_CELLS):
-            pg = (centre + (corners - centre) * (4.0 + cells) / 4.0) @ c_T_s[:3, :3].T + c_T_s[:3, 3]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                grown.append(((pg / pg[:, :, 2:3]) @ self.camera.K.T)[:, :, :2].astype(np.float32))
-        e = np.roll(uv, -1, axis=1) - uv
-        cell_px2 = 0.5 * np.abs(np.sum(uv[:, :, 0] * np.roll(uv[:, :, 1], -1, axis=1)
-                                       - np.roll(uv[:, :, 0], -1, axis=1) * uv[:, :, 1], axis=1)) / 64.0
         row = np.full(len(facing), -1)
         row[f] = np.arange(len(f))
         lo_f, hi_f = uv.min(axis=1), uv.max(axis=1)
         inside = ((lo_f[:, 0] >= c.margin_px) & (lo_f[:, 1] >= c.margin_px)
                   & (hi_f[:, 0] <= self.camera.width_px - c.margin_px)
                   & (hi_f[:, 1] <= self.camera.height_px - c.margin_px))
-        sides = np.linalg.norm(e, axis=2).min(axis=1)
+        sides = np.linalg.norm(np.roll(uv, -1, axis=1) - uv, axis=2).min(axis=1)
         ok = np.zeros(len(facing), bool)
         ok[f] = front & inside & (sides >= c.min_side_px)
         depth = np.full(len(facing), np.nan)
         depth[f] = pc[:, :, 2].mean(axis=1)
         lo, hi = np.full((len(facing), 2), np.nan), np.full((len(facing), 2), np.nan)
         lo[f], hi[f] = lo_f, hi_f
-        g = _ViewGeometry(ok, depth, lo, hi, row, grown[0], grown[1], cell_px2)
+        g = _ViewGeometry(ok, depth, lo, hi, row, uv)
         self._geometry_cache[view] = g
         return g
 
@@ -351,14 +342,18 @@ class SurveyPlanner:
                         axis=2)
         nearer = np.arange(len(idx))[None, :] < rows[:, None]
         covers = (inter > self.config.occlusion_overlap * area[:, None]) & nearer
-        outer, inner = g.outer[g.row[idx]], g.inner[g.row[idx]]
-        o_lo, o_hi = outer.min(axis=1), outer.max(axis=1)
-        i_lo, i_hi = inner[rows].min(axis=1), inner[rows].max(axis=1)
+        # the detector's rule, on the pairs whose boxes, grown past what the quiet zone and the
+        # margin can add under any perspective the candidates see, still meet
+        size = hi - lo
+        o_lo, o_hi = lo - _OUTER_REACH * size, hi + _OUTER_REACH * size
+        i_lo, i_hi = lo[rows] - _INNER_REACH * size[rows], hi[rows] + _INNER_REACH * size[rows]
         touch = (np.all(o_lo[None] < i_hi[:, None], axis=2) & np.all(i_lo[:, None] < o_hi[None], axis=2)
                  & nearer & ~covers)
         for i, j in zip(*np.nonzero(touch)):
-            a, _ = cv2.intersectConvexConvex(outer[j], inner[rows[i]])
-            if a > HIDDEN_MIN_OVERLAP_CELLS2 * g.cell_px2[g.row[idx[rows[i]]]]:
+            near, far = g.quad[g.row[idx[j]]], g.quad[g.row[idx[rows[i]]]]
+            band = grown_quad(far, _HIDDEN_MARGIN_CELLS).astype(np.float32)
+            shared, _ = cv2.intersectConvexConvex(grown_quad(near, _QUIET_CELLS).astype(np.float32), band)
+            if shared > HIDDEN_MIN_OVERLAP_CELLS2 * abs(cv2.contourArea(far.astype(np.float32))) / 64.0:
                 covers[i, j] = True
         return covers
 
