@@ -39,15 +39,21 @@ from lab.core.structures.borg import BorgModel
 from lab.core.survey_budget import MAX_VIEWS, SIGMA_TARGET_MM
 
 
-def unoccluded(lo: np.ndarray, hi: np.ndarray, rows: np.ndarray, overlap: float) -> np.ndarray:
-    """Which of `rows` no nearer tag hides: (N, 2) image boxes `lo`..`hi` sorted nearest first; a
-    tag is hidden when one nearer tag's box covers more than `overlap` of its own (every nearer tag
-    in the frame counts, hidden or not).  Boolean mask over `rows`."""
+def box_covers(lo: np.ndarray, hi: np.ndarray, rows: np.ndarray, overlap: float) -> np.ndarray:
+    """(len(rows), N): whether tag j's image box covers more than `overlap` of tag rows[i]'s, for
+    (N, 2) boxes `lo`..`hi` sorted nearest first (only nearer ones, earlier, cover)."""
     area = np.prod(hi[rows] - lo[rows], axis=1)
     inter = np.prod(np.clip(np.minimum(hi[rows, None], hi[None]) - np.maximum(lo[rows, None], lo[None]), 0, None),
                     axis=2)
     inter[np.arange(len(lo))[None, :] >= rows[:, None]] = 0.0     # only nearer ones (earlier) cover
-    return inter.max(axis=1, initial=0.0) <= overlap * area
+    return inter > overlap * area[:, None]
+
+
+def unoccluded(lo: np.ndarray, hi: np.ndarray, rows: np.ndarray, overlap: float) -> np.ndarray:
+    """Which of `rows` no nearer tag hides: (N, 2) image boxes `lo`..`hi` sorted nearest first; a
+    tag is hidden when one nearer tag's box covers more than `overlap` of its own (every nearer tag
+    in the frame counts, hidden or not).  Boolean mask over `rows`."""
+    return ~box_covers(lo, hi, rows, overlap).any(axis=1)
 
 
 # the detector's hiding rule (`estimation.fiducials.partly_hidden`) as the run's detector applies it:
@@ -307,8 +313,7 @@ class SurveyPlanner:
         facing = (dist <= c.max_distance_m) & (np.einsum("ij,ij->i", normals, to_cam) / dist >= np.cos(c.max_view_angle_rad))
         # only the tags facing the camera can be read: project those (the others' rows stay NaN)
         f = np.flatnonzero(facing)
-        corners = self._tag_corners[f]
-        pc = corners @ c_T_s[:3, :3].T + c_T_s[:3, 3]
+        pc = self._tag_corners[f] @ c_T_s[:3, :3].T + c_T_s[:3, 3]
         front = np.all(pc[:, :, 2] >= 0.1, axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = (pc / pc[:, :, 2:3]) @ self.camera.K.T
@@ -337,11 +342,8 @@ class SurveyPlanner:
         grown by the detector's margin by more than `HIDDEN_MIN_OVERLAP_CELLS2` of its cells (the
         detector's `partly_hidden`, which drops such a tag)."""
         lo, hi = g.lo[idx], g.hi[idx]
-        area = np.prod(hi[rows] - lo[rows], axis=1)
-        inter = np.prod(np.clip(np.minimum(hi[rows, None], hi[None]) - np.maximum(lo[rows, None], lo[None]), 0, None),
-                        axis=2)
+        covers = box_covers(lo, hi, rows, self.config.occlusion_overlap)
         nearer = np.arange(len(idx))[None, :] < rows[:, None]
-        covers = (inter > self.config.occlusion_overlap * area[:, None]) & nearer
         # the detector's rule, on the pairs whose boxes, grown past what the quiet zone and the
         # margin can add under any perspective the candidates see, still meet
         size = hi - lo
