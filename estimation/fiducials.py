@@ -43,21 +43,12 @@ import cv2
 import numpy as np
 
 from estimation.quad_bias import blur_bias
-from estimation.tag_family import EXTENDED, dictionary, family_for, family_name, family_size
+from estimation.tag_family import EXTENDED, dictionary, family_for
 from estimation.tag_quads import code_bits, edge_blur_px, fit_quads, identify, read_bits, ring_deviation
 from lab.core.geometry import Pose3, Rot3
 
-__all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges", "TAG_FAMILY",
-           "tag_family_size",
+__all__ = ["Detection", "DetectorConfig", "TagDetector", "tag_object_points", "refine_corners_by_edges",
            "apriltag_to_opencv_corners"]
-
-# The largest tag family the detector reads (`estimation.tag_family`): a structure with more tags
-# than it has codes cannot be printed (a 10x10x10 BORG has 926 tags)
-TAG_FAMILY = family_name(EXTENDED)
-
-
-def tag_family_size() -> int:
-    return family_size(EXTENDED)
 
 
 @dataclass(frozen=True)

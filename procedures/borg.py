@@ -250,14 +250,14 @@ class BorgProcedure:
     @cached_property
     def tags_beyond_family(self) -> str | None:
         """Why the structure's tags cannot be printed in the detector's largest tag family, or None."""
-        from estimation.fiducials import TAG_FAMILY, tag_family_size
+        from estimation.tag_family import EXTENDED, family_name, family_size
 
         ids = sorted(self.model.tags)
-        n_ids = tag_family_size()
+        n_ids = family_size(EXTENDED)
         if not ids or ids[-1] < n_ids:
             return None
         return (f"borg:{self.model.n} has {len(ids)} tags, ids {ids[0]}..{ids[-1]}, and the largest tag family is "
-                f"{TAG_FAMILY}, ids 0..{n_ids - 1} (docs/hardware.md, \"Tags\")")
+                f"{family_name(EXTENDED)}, ids 0..{n_ids - 1} (docs/hardware.md, \"Tags\")")
 
     def check_observable(self) -> None:
         """Before anything moves: refuse a structure whose tags the tag family cannot print, a run
