@@ -260,14 +260,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.report:
         return report_study(args.report, "layers", aggregate, to_markdown)
-    if args.sizes is None and not args.quick:
-        sizes = list(range(3, MAX_N + 1))
-    else:
-        text = args.sizes or "3,4"
-        try:
-            sizes = [int(x) for x in text.split(",")]
-        except ValueError:
-            raise UserError(f"--sizes: expected integers separated by commas, got {text!r}") from None
+    text = args.sizes or ("3,4" if args.quick else ",".join(map(str, range(3, MAX_N + 1))))
+    try:
+        sizes = [int(x) for x in text.split(",")]
+    except ValueError:
+        raise UserError(f"--sizes: expected integers separated by commas, got {text!r}") from None
     seeds = args.seeds if args.seeds is not None else (1 if args.quick else 5)
     if not sizes or any(not 2 <= n <= MAX_N for n in sizes) or seeds < 1:
         raise UserError(f"--sizes must be in 2..{MAX_N}, --seeds >= 1")
