@@ -12,19 +12,30 @@ from procedures import runner
 from procedures.survey import SurveyPlan, View
 
 
-def test_a_planned_view_that_misses_is_re_planned_and_the_module_gets_a_verdict(tmp_path):
+def _run_with_plan_for_2d(tmp_path, plan_of):
+    """A run of the 3x3x3's first two modules in which 2D's plan is `plan_of(proc, tags)`, each view
+    "planned" to show both its tags; the procedure and 2D's tags, once the run has completed."""
     proc, bench, _ = _build("borg", {"n": 3, "modules": 2, "no_rig_survey": True, "speedup": 100.0})
     try:
         tags = proc.model.module_by_name["2D"].tags
-        # a deliberately bad plan for 2D (face 1): one view of face 3, "planned" to show its tags
-        bad = View(math.pi, (0.0,) * 6)
-        assert not set(tags) & set(proc.planner.visible(bad, proc.model.tags))
-        proc.surveys["2D"] = SurveyPlan("2D", [bad], [list(tags)], [], None)
+        views = plan_of(proc, tags)
+        proc.surveys["2D"] = SurveyPlan("2D", views, [list(tags)] * len(views), [], None)
         outcome = runner.run(proc, tmp_path / "r", info={}, operator_auto=True, show_progress=False,
                              recorder_factory=lambda p: RunRecorder(p, "borg", {}))
     finally:
         proc.close()
     assert outcome.result == "completed", outcome
+    return proc, tags
+
+
+def test_a_planned_view_that_misses_is_re_planned_and_the_module_gets_a_verdict(tmp_path):
+    def bad_plan(proc, tags):
+        # a deliberately bad plan for 2D (face 1): one view of face 3, "planned" to show its tags
+        bad = View(math.pi, (0.0,) * 6)
+        assert not set(tags) & set(proc.planner.visible(bad, proc.model.tags))
+        return [bad]
+
+    proc, tags = _run_with_plan_for_2d(tmp_path, bad_plan)
     r = proc.results["2D"]
     assert r.verdict == "ok", (r.verdict, r.reason)
     assert set(r.tags_seen) == set(tags)
@@ -63,9 +74,7 @@ def test_a_strut_across_the_line_of_sight_hides_a_point_and_one_behind_it_does_n
 def test_a_tag_planned_from_two_turntable_angles_and_seen_from_one_is_re_planned(tmp_path):
     """Its depth was to come from triangulation: views from one angle leave it to the tag's size
     (N = 7, 159D: `uncertain` at 2.4 mm where 0.25 mm was planned)."""
-    proc, bench, _ = _build("borg", {"n": 3, "modules": 2, "no_rig_survey": True, "speedup": 100.0})
-    try:
-        tags = proc.model.module_by_name["2D"].tags
+    def one_angle_and_a_miss(proc, tags):
         present = proc.model.tags
         seeing = [v for v in proc.planner.candidates if set(tags) <= set(proc.planner.visible(v, present))]
         angle = next(a for a in sorted({v.turntable_rad for v in seeing})
@@ -73,13 +82,10 @@ def test_a_tag_planned_from_two_turntable_angles_and_seen_from_one_is_re_planned
         good = [v for v in seeing if v.turntable_rad == angle][:2]
         # ... and one "planned" from the far side, where 2D's face cannot be seen
         bad = View(angle + math.pi, (0.0,) * 6)
-        assert not set(tags) & set(proc.planner.visible(bad, proc.model.tags))
-        proc.surveys["2D"] = SurveyPlan("2D", good + [bad], [list(tags)] * 3, [], None)
-        outcome = runner.run(proc, tmp_path / "r", info={}, operator_auto=True, show_progress=False,
-                             recorder_factory=lambda p: RunRecorder(p, "borg", {}))
-    finally:
-        proc.close()
-    assert outcome.result == "completed", outcome
+        assert not set(tags) & set(proc.planner.visible(bad, present))
+        return good + [bad]
+
+    proc, tags = _run_with_plan_for_2d(tmp_path, one_angle_and_a_miss)
     r = proc.results["2D"]
     views = [v for v in proc.views_done if v["module"] == "2D"]
     first_round = [v for v in views if v["round"] == 0]
