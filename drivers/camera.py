@@ -34,6 +34,7 @@ from lab.core.files import read_json
 
 CALIBRATION_FORMAT = "lab-camera-calibration"
 SNAPSHOT_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+CLOSE_WAIT_S = 2.0    # close() lets a read under way finish this long before releasing the capture
 
 
 @dataclass(frozen=True)
@@ -180,11 +181,13 @@ class _Capture:
             raise Disconnected(name, f"OpenCV cannot open camera {url!r}")
         self.sink(CommsRecord(name, url, "event", b"", time.time(), "opened with cv2.VideoCapture"))
         self._lock = threading.Lock()
+        self._worker: threading.Thread | None = None
 
     def read(self) -> tuple[np.ndarray, float | None, int | None]:
         result: list[Any] = []
         with self._lock:
             worker = threading.Thread(target=lambda: result.append(self.cap.read()), daemon=True)
+            self._worker = worker
             worker.start()
             worker.join(self.timeout_s)
             if worker.is_alive():
@@ -201,6 +204,16 @@ class _Capture:
         return img, None, None
 
     def close(self) -> None:
+        # a read still under way (a timed-out frame, or a run aborted mid-read) is let finish first:
+        # releasing the capture under it is undefined in OpenCV, and a daemon thread still inside
+        # OpenCV when the interpreter exits aborts the process (SIGABRT instead of the run's exit code)
+        worker = self._worker
+        if worker is not None and worker.is_alive():
+            worker.join(max(self.timeout_s, CLOSE_WAIT_S))
+            if worker.is_alive():
+                self.sink(CommsRecord(self.name, self.url, "event", b"", time.time(),
+                                      "close: a read is still stalled; the capture is left open"))
+                return
         self.cap.release()
 
 

@@ -29,6 +29,7 @@ HTTP_STATUS = {10: 404, 11: 400, 12: 400, 20: 400, 30: 409, 31: 409, 40: 409, 50
 HUNG_REQUEST_S = 10.0      # how long a `timeout` fault keeps a request open before dropping it
 REQUEST_TIMEOUT_S = 5.0    # a client that does not finish sending its request in this time is dropped
 MAX_CONNECTIONS = 32       # more at once are turned away with 503 (a Pi serves one host, not a crowd)
+STOP_WAIT_S = 4.0          # stop() waits this long for requests under way (a frame being rendered) to end
 MAX_TARGET = 2048          # bytes of path + query
 
 
@@ -64,6 +65,8 @@ class _Server(ThreadingHTTPServer):
     def __init__(self, *args: Any, **kw: Any) -> None:
         super().__init__(*args, **kw)
         self.slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+        self._active = 0
+        self._idle = threading.Condition()
 
     def process_request(self, request: Any, client_address: Any) -> None:
         if not self.slots.acquire(blocking=False):   # every slot busy: refuse at once, hold no thread
@@ -73,6 +76,8 @@ class _Server(ThreadingHTTPServer):
                 pass
             self.shutdown_request(request)
             return
+        with self._idle:
+            self._active += 1
         super().process_request(request, client_address)
 
     def handle_error(self, request: Any, client_address: Any) -> None:
@@ -87,6 +92,17 @@ class _Server(ThreadingHTTPServer):
             super().process_request_thread(request, client_address)
         finally:
             self.slots.release()
+            with self._idle:
+                self._active -= 1
+                self._idle.notify_all()
+
+    def wait_idle(self, timeout_s: float) -> bool:
+        """Wait for the requests under way to finish.  A request thread is a daemon; one still
+        inside OpenCV (the camera's render) when the interpreter exits is killed inside C++ and
+        aborts the whole process (`terminate called without an active exception`): a run aborted
+        mid-frame exited with SIGABRT instead of its own exit code."""
+        with self._idle:
+            return self._idle.wait_for(lambda: self._active == 0, timeout_s)
 
 
 class HttpDeviceServer:
@@ -181,6 +197,7 @@ class HttpDeviceServer:
         self._httpd.server_close()
         if self._thread:
             self._thread.join(timeout=1.0)
+        self._httpd.wait_idle(STOP_WAIT_S)
 
 
 def now_s() -> float:

@@ -103,3 +103,39 @@ def test_opencv_capture_from_a_video_file(tmp_path):
     cam.close()
     with pytest.raises(Disconnected, match="OpenCV cannot open camera"):
         Camera(dataclasses.replace(cfg, url=str(tmp_path / "none.avi"))).grab()
+
+
+def test_closing_a_capture_waits_for_a_read_under_way(monkeypatch):
+    """A read that times out (or a run aborted mid-read) leaves a thread inside VideoCapture.read:
+    close() lets it finish before releasing (releasing under it is undefined in OpenCV, and a daemon
+    thread inside OpenCV at interpreter exit aborts the process)."""
+    import threading
+    import time
+
+    from drivers import camera as cam_mod
+    from drivers.errors import DeviceTimeout
+
+    events: list[str] = []
+
+    class SlowCapture:
+        def __init__(self, source):
+            pass
+
+        def isOpened(self):  # noqa: N802 (OpenCV's naming)
+            return True
+
+        def read(self):
+            time.sleep(0.4)
+            events.append("read done")
+            return True, np.zeros((4, 4, 3), np.uint8)
+
+        def release(self):
+            events.append("released")
+
+    monkeypatch.setattr(cv2, "VideoCapture", SlowCapture)
+    cap = cam_mod._Capture("cam0", "video.mp4", lambda record: None, timeout_s=0.05)
+    with pytest.raises(DeviceTimeout):
+        cap.read()
+    cap.close()
+    assert events == ["read done", "released"]
+    assert not any(t.is_alive() for t in threading.enumerate() if t is cap._worker)

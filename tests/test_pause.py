@@ -69,6 +69,14 @@ class Operator:
                     self._consumed = len(self.text)
                     self.type("")
         rc = self.proc.wait(timeout=30)
+        while select.select([self.master], [], [], 0.2)[0]:   # what it printed last (an abort's message)
+            try:
+                chunk = os.read(self.master, 65536)
+            except OSError:
+                break
+            if not chunk:
+                break
+            self.text += chunk.decode(errors="replace")
         os.close(self.master)
         return rc
 

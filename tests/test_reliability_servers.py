@@ -82,3 +82,28 @@ def test_ephemeral_range_check_finds_ports_inside_it():
 
 def test_the_packaged_sim_rig_listens_outside_the_ephemeral_range():
     assert ports_in_ephemeral_range(load_rig(None)) == []
+
+
+def test_stop_waits_for_a_request_under_way():
+    """A request thread is a daemon: one still rendering (inside OpenCV) when the interpreter exits
+    is killed inside C++ and aborts the process, so a run aborted mid-frame exited with SIGABRT.
+    stop() must return only once the request under way has ended."""
+    import threading
+
+    from sim_devices.faults import FaultInjector
+
+    started, finished = threading.Event(), threading.Event()
+
+    def slow(query, stuck):
+        started.set()
+        time.sleep(0.6)
+        finished.set()
+        return 200, "text/plain", b"done", {}
+
+    server = http_server.HttpDeviceServer("slow", {"/slow": slow}, FaultInjector("slow", http=True)).start()
+    client = threading.Thread(target=_get, args=(f"{server.url}/slow",), daemon=True)
+    client.start()
+    assert started.wait(5)
+    server.stop()
+    assert finished.is_set()
+    client.join(5)
