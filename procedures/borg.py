@@ -56,9 +56,11 @@ OK_SIGMA_FACTOR = 2.0
 MAX_CONFIRMS = 2
 CONFIRM_GAIN = 0.25
 _STREAM_CAMERA = 8200    # simulated camera noise per step: [seed, _STREAM_CAMERA, step, attempt]
-# every tag's covariance is logged every this many rounds (and at the first); between them, the covariances
-# of the tags a round saw (`_log_estimates`)
+# every tag's covariance is logged at the first round and then every FULL_COVARIANCE_EVERY rounds, or
+# every (tags / FULL_COVARIANCE_PER_ROUND) rounds in a larger structure; between them, the module's
+# (`_log_estimates`)
 FULL_COVARIANCE_EVERY = 10
+FULL_COVARIANCE_PER_ROUND = 20
 IMAGE_FORMAT = "jpeg"    # logged images (detection runs on the lossless frame)
 
 
@@ -198,7 +200,7 @@ class BorgProcedure:
         self._true_cameras: list[Any] = []             # simulation: each graph view's true camera, for the bound
         self._corner_sq: list[float] = []              # simulation: squared corner errors against the truth
         self._run_bound: tuple[tuple, Any] | None = None  # simulation: (what it is of, estimation.bound.RunBound)
-        self._rounds_logged = 0
+        self._rounds_since_full: int | None = None    # rounds since every tag's covariance was logged
         self._views_encoded: Any = None                # the checkpoint's views, each encoded once
         self.homed = False
 
@@ -782,8 +784,7 @@ class BorgProcedure:
         self._check_structure_fits()
         rec.log_metric("slam/update_s", solve_s, "s")
         result = self.measure.verdict(name)
-        self._log_estimates(run, {d.tag_id for _, parsed in done for d in parsed}
-                            | set(self.model.module_by_name[name].tags))
+        self._log_estimates(run, set(self.model.module_by_name[name].tags))
         for pose, cov in self.measure.camera_estimates():
             rec.log_pose(topics.estimate_topic("camera"), pose, "structure", covariance6x6=cov)
         return result
@@ -872,18 +873,23 @@ class BorgProcedure:
         world_T_camera = self.camera_model.world_T_camera(view)
         return frame, world_T_camera
 
-    def _log_estimates(self, run: RunContext, seen: set[int]) -> None:
-        """Every tag's estimated pose; the covariances of the tags the round saw (and the module's),
-        and of every tag at every FULL_COVARIANCE_EVERY-th round.  Each covariance is a marginal of
-        the whole graph, and every round moves the rig at the Bayes tree's root, so all of them
-        every round cost O(tags) marginals a round, O(tags^2) a run: at N = 5 153 ms a round by
-        module 60, at N = 8 a ninth of the run's CPU by module 80 of 410."""
-        self._rounds_logged += 1
-        full = self._rounds_logged % FULL_COVARIANCE_EVERY == 1
-        estimates = self.measure.tag_estimates(None if full else seen)
+    def _log_estimates(self, run: RunContext, module_tags: set[int]) -> None:
+        """Every tag's estimated pose every round; the covariances of the module's tags (the
+        verdict's, read already), and of every tag at the first round and then every
+        FULL_COVARIANCE_EVERY rounds, or every tags / FULL_COVARIANCE_PER_ROUND rounds when that is
+        more.  Each covariance is a marginal of the whole graph, recomputed after every update (the
+        rig at the Bayes tree's root moves each round), at a cost that grows with the graph: logging
+        those of every tag a round saw, as before, was 36 % of an N = 9 run's CPU (~3 ms a tag at
+        N = 5, each round's views seeing 15-100 tags); spaced so, a full set costs about
+        FULL_COVARIANCE_PER_ROUND marginals a round on average at any size."""
+        n_tags = len(self.measure.slam.tag_estimates())
+        every = max(FULL_COVARIANCE_EVERY, math.ceil(n_tags / FULL_COVARIANCE_PER_ROUND))
+        full = self._rounds_since_full is None or self._rounds_since_full + 1 >= every
+        self._rounds_since_full = 0 if full else self._rounds_since_full + 1
+        estimates = self.measure.tag_estimates(None if full else module_tags)
         if estimates:
             poses = {tid: p for tid, (p, _) in estimates.items()}
-            covs = {tid: c for tid, (_, c) in estimates.items()}
+            covs = {tid: c for tid, (_, c) in estimates.items() if c is not None}
             run.recorder.log_tag_estimates(poses, "structure", covariances=covs)
 
     def _log_verdict(self, run: RunContext, index: int, r: Verdict) -> None:

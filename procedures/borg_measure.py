@@ -164,13 +164,6 @@ class Measurement:
 
     def tag_estimates(self, covariance_of: set[int] | None = None) -> dict[int, tuple[Pose3, np.ndarray | None]]:
         """Every tag's estimate, with its marginal covariance (only the tags `covariance_of`, if given)."""
-        out = {}
-        for t, p in self.slam.tag_estimates().items():
-            c = None
-            if covariance_of is None or t in covariance_of:
-                try:
-                    c = self.slam.tag_covariance(t)
-                except RuntimeError:
-                    c = None
-            out[t] = (p, c)
-        return out
+        poses = self.slam.tag_estimates()
+        covs = self.slam.tag_covariances(poses if covariance_of is None else [t for t in poses if t in covariance_of])
+        return {t: (p, covs.get(t)) for t, p in poses.items()}

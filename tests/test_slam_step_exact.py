@@ -207,6 +207,22 @@ def test_a_steps_marginals_from_one_joint_marginal_are_isam2s_own():
     assert got == pytest.approx(slam._relative_covariance(0, 36), rel=1e-9, abs=1e-15)
 
 
+def test_many_tags_covariances_from_joint_marginals_are_each_tags_own(monkeypatch):
+    """`tag_covariances` (joint marginals in chunks, the logged covariances) gives each tag's
+    `tag_covariance`, scaled alike, for chunks smaller than the tags and for a prefetched tag."""
+    from estimation import sf_graphslam
+
+    slam = _run()
+    tags = sorted(slam.tags)
+    each = {t: slam.tag_covariance(t) for t in tags}
+    monkeypatch.setattr(sf_graphslam, "JOINT_CHUNK", 3)
+    slam._prefetch([tags[0], tags[1]])
+    got = slam.tag_covariances(tags + [tags[0], 999_999])       # a repeat and an unknown tag
+    assert sorted(got) == tags
+    for t in tags:
+        assert got[t] == pytest.approx(each[t], rel=1e-9, abs=1e-15)
+
+
 def test_the_residuals_in_one_pass_are_the_corner_factors_own():
     # no semantic factors: the residuals are read at the estimate that first includes their factors
     slam = SfGraphSlam(MODEL, SlamConfig(semantic=False, observation="corners", corner_sigma_px=0.05,
