@@ -61,6 +61,15 @@ def test_the_figures_count_per_layer_and_per_size():
     assert l1["ratio_median"] == pytest.approx(4.0)
 
 
+def test_a_run_taken_as_it_was_found_leaves_the_time_per_module_to_the_others():
+    mod = {"name": "a", "layer": 0, "fault": False, "verdict": "ok", "views": 4, "error_m": 0.0002,
+           "sigma_m": 0.0004, "replanned": False}
+    trial = {"n": 2, "modules": [mod], "peak_rss_mb": None, "slam_update_s_median": 0.01}
+    rows = aggregate([{**trial, "seed": 0, "wall_s": float("nan")}, {**trial, "seed": 1, "wall_s": 12.0}])
+    assert rows[0]["wall_s_per_module"] == pytest.approx(12.0)
+    assert aggregate([{**trial, "seed": 0, "wall_s": float("nan")}])[0]["wall_s_per_module"] is None
+
+
 @pytest.mark.parametrize("args, match", [(["--sizes", "3,11"], "--sizes must be in 2..10"),
                                          (["--sizes", "3,x"], "--sizes: expected integers"),
                                          (["--seeds", "0"], "--seeds >= 1"),

@@ -213,7 +213,9 @@ def aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
         ts = [t for t in trials if t["n"] == n]
         mods = [m for t in ts for m in t["modules"]]
         whole = _row({"n": n, "layer": "all", "runs": len(ts)}, mods)
-        whole.update({"wall_s_per_module": float(np.median([t["wall_s"] / max(len(t["modules"]), 1) for t in ts])),
+        # a run the study took as it found it, finished, has no wall time: the median of the others
+        timed = [t["wall_s"] / max(len(t["modules"]), 1) for t in ts if math.isfinite(t["wall_s"])]
+        whole.update({"wall_s_per_module": float(np.median(timed)) if timed else None,
                       "slam_update_ms_median": float(np.median([t["slam_update_s_median"] for t in ts]) * 1e3),
                       "peak_rss_mb": max((float(t["peak_rss_mb"]) for t in ts if t["peak_rss_mb"] is not None),
                                          default=None),
