@@ -109,6 +109,8 @@ def _attempt(tmp_path, n=3, speedup=100.0, summary=None, checkpoint=True):
 
 @pytest.mark.parametrize("kw, expected", [
     ({}, "resume"),                                                          # killed: no summary yet
+    ({"summary": {"result": "running"}}, "resume"),                         # killed after a step
+    ({"summary": {"result": "aborted", "reason": "interrupted by the operator"}}, "resume"),
     ({"summary": {"result": "failed", "reason": "DeviceTimeout: camera: no reply"}}, "resume"),
     ({"summary": {"result": "completed"}}, "completed"),                    # the study stopped before journaling it
     ({"summary": {"result": "failed", "reason": "UserError: bad scenario"}}, None),

@@ -130,7 +130,9 @@ def _earlier_attempt(run_dir: Path, n: int, scenario_file: Path, speedup: float)
         summary = None
     if summary is not None and summary.get("result") == "completed":
         return "completed"
-    if summary is not None and not _device_fault(summary):
+    # a run writes its summary "running" after every step: one killed with the study (or the machine)
+    # left that; one interrupted (Ctrl-C, SIGTERM) says "aborted" and is resumable by design
+    if summary is not None and summary.get("result") not in ("running", "aborted") and not _device_fault(summary):
         return None                  # stopped for a reason of its own: the trial is run again
     return "resume" if (run_dir / "checkpoint.json").exists() else None
 
