@@ -65,9 +65,9 @@ def test_a_run_taken_as_it_was_found_leaves_the_time_per_module_to_the_others():
     mod = {"name": "a", "layer": 0, "fault": False, "verdict": "ok", "views": 4, "error_m": 0.0002,
            "sigma_m": 0.0004, "replanned": False}
     trial = {"n": 2, "modules": [mod], "peak_rss_mb": None, "slam_update_s_median": 0.01}
-    rows = aggregate([{**trial, "seed": 0, "wall_s": float("nan")}, {**trial, "seed": 1, "wall_s": 12.0}])
+    rows = aggregate([{**trial, "seed": 0, "wall_s": None}, {**trial, "seed": 1, "wall_s": 12.0}])
     assert rows[0]["wall_s_per_module"] == pytest.approx(12.0)
-    assert aggregate([{**trial, "seed": 0, "wall_s": float("nan")}])[0]["wall_s_per_module"] is None
+    assert aggregate([{**trial, "seed": 0, "wall_s": None}])[0]["wall_s_per_module"] is None
 
 
 @pytest.mark.parametrize("args, match", [(["--sizes", "3,11"], "--sizes must be in 2..10"),
@@ -140,3 +140,27 @@ def test_a_run_stopped_by_a_device_timeout_is_resumed_and_says_so(tmp_path, monk
     row = bl.aggregate([r])[0]
     assert row["resumed"] == 2 and "| 1 (2 resumed) |" in bl.to_markdown({"rows": [row], "command": "c", "runs": 1,
                                                                           "wall_s": 1.0})
+
+
+@pytest.mark.parametrize("summary", [{"result": "completed"}, {"result": "running"}])
+def test_a_trial_of_a_run_the_study_did_not_start_has_no_wall_time_and_journals(tmp_path, monkeypatch, summary):
+    """A run found finished, or resumed from where an earlier study left it: its wall time is not
+    known.  The trial says None (JSON null), which the study's journal takes back: NaN it refused."""
+    from lab.core.executor.journal import finite_values
+    from lab.studies import bench_common, bench_layers as bl
+
+    model = build_borg(2)
+    done = {"result": "completed", "views": 3, "modules": [
+        {"name": m.name, "verdict": "ok", "views": 3, "position_error_m": 1e-4, "sigma_position_m": 2e-4, "reason": ""}
+        for m in model.modules]}
+    run_dir = tmp_path / "n2-seed0"
+    run_dir.mkdir()
+    (run_dir / "run.json").write_text(json.dumps({"params": {"n": 2, "scenario": str(tmp_path / "scenario-n2-seed0.toml"),
+                                                             "speedup": 100.0}}))
+    (run_dir / "summary.json").write_text(json.dumps(done if summary["result"] == "completed" else summary))
+    (run_dir / "checkpoint.json").write_text("{}")
+    monkeypatch.setattr(bl, "median_metric", lambda path, name: 0.01)
+    monkeypatch.setattr(bl, "resume_borg", lambda out, log=None: bench_common.BorgRun(["resume"], done, 20.0, 600.0, 0.02))
+    r = bl.trial(tmp_path, 2, 0, 100.0)
+    assert r["wall_s"] is None and finite_values(r) is None
+    assert "wall time unknown" in bl._progress(r)

@@ -148,16 +148,19 @@ def trial(out: Path, n: int, seed: int, speedup: float) -> dict[str, Any]:
     resumed = 0
     if earlier == "completed":
         summary = json.loads((run_dir / "summary.json").read_text())
-        run = BorgRun([], summary, float("nan"), None, median_metric(run_dir / "run.mcap", "slam/update_s"))
+        run = BorgRun([], summary, 0.0, None, median_metric(run_dir / "run.mcap", "slam/update_s"))
     elif earlier == "resume":
         run, resumed = resume_borg(run_dir, log), 1
     else:
         run = run_borg(["--n", str(n), "--scenario", str(sc), "--speedup", str(speedup)], run_dir, log=log)
-    wall, peak = run.wall_s, run.peak_rss_mb
+    # the wall time of a run this study did not start (finished, or cut off, before the study came
+    # back to it) is not known: None (the journal keeps JSON's null, never NaN)
+    wall: float | None = run.wall_s if earlier is None else None
+    peak = run.peak_rss_mb
     while _device_fault(run.summary) and resumed < MAX_RESUMES:
         run = resume_borg(run_dir, log)
         resumed += 1
-        wall += run.wall_s
+        wall = wall + run.wall_s if wall is not None else None
         peaks = [p for p in (peak, run.peak_rss_mb) if p is not None]
         peak = max(peaks) if peaks else None
     s = run.summary
@@ -171,8 +174,7 @@ def trial(out: Path, n: int, seed: int, speedup: float) -> dict[str, Any]:
                      "verdict": m["verdict"], "views": m.get("views"),
                      "error_m": m.get("position_error_m"), "sigma_m": m.get("sigma_position_m"),
                      "replanned": "re-planned" in (m.get("reason") or "")})
-    # a resumed run's time and memory are its processes' (the wall time of a run finished before the
-    # study came back to it is unknown: nan)
+    # a resumed run's memory is its processes'
     return {"n": n, "seed": seed, "result": s["result"], "wall_s": wall, "modules": rows,
             "peak_rss_mb": peak, "views": s.get("views"), "resumed": resumed,
             "slam_update_s_median": run.slam_update_s_median}
@@ -215,8 +217,9 @@ def aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
         ts = [t for t in trials if t["n"] == n]
         mods = [m for t in ts for m in t["modules"]]
         whole = _row({"n": n, "layer": "all", "runs": len(ts)}, mods)
-        # a run the study took as it found it, finished, has no wall time: the median of the others
-        timed = [t["wall_s"] / max(len(t["modules"]), 1) for t in ts if math.isfinite(t["wall_s"])]
+        # a run the study took as it found it has no wall time: the median of the others
+        timed = [t["wall_s"] / max(len(t["modules"]), 1) for t in ts
+                 if t["wall_s"] is not None and math.isfinite(t["wall_s"])]
         whole.update({"wall_s_per_module": float(np.median(timed)) if timed else None,
                       "slam_update_ms_median": float(np.median([t["slam_update_s_median"] for t in ts]) * 1e3),
                       "peak_rss_mb": max((float(t["peak_rss_mb"]) for t in ts if t["peak_rss_mb"] is not None),
@@ -255,7 +258,8 @@ def _progress(r: dict[str, Any]) -> str:
             f"{sum(m['verdict'] == UNVERIFIED for m in mods)} unverified, "
             f"{sum(m['verdict'] == FLAGGED for m in good)} false flags, faults "
             f"{sum(m['verdict'] == FLAGGED for m in mods if m['fault'])}/{sum(m['fault'] for m in mods)}, "
-            f"error max {err.max() * 1e3 if err.size else float('nan'):.2f} mm, {r['wall_s']:.0f} s")
+            f"error max {err.max() * 1e3 if err.size else float('nan'):.2f} mm, "
+            f"{'wall time unknown' if r['wall_s'] is None else format(r['wall_s'], '.0f') + ' s'}")
 
 
 def run(args: argparse.Namespace) -> int:
