@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import pytest
 from test_slam_step_exact import GEOM, K, MODEL, _calibration, _steps
 
 from estimation.bound import RunBound
@@ -57,3 +58,20 @@ def test_the_incremental_bound_is_the_rebuilt_bound_step_by_step():
     want = _rebuilt(slam, keys, 0.2, moved)
     _same(got, want)
     assert not np.allclose(want[keys[1]], _rebuilt(slam, keys, 0.2, truth)[keys[1]], rtol=1e-6)
+
+
+def test_one_key_from_its_own_elimination_is_the_marginals_own():
+    """A verdict asks for one key: eliminated last on its own (`GaussianFactorGraph.marginal`), not
+    through `gtsam.Marginals`; the same covariance."""
+    slam = SfGraphSlam(MODEL, SlamConfig(observation="corners", corner_sigma_px=0.05, tag_scale_sigma=0.001),
+                       rig=GEOM, calibration=_calibration(), camera=(K, np.zeros(5)))
+    bound = RunBound(slam, **NOISE)
+    for cam, dets, motion in _steps()[0]:
+        slam.add_view(cam, dets, motion)
+    slam.update(snapshot=[0, 1, 2])
+    truth = _truth(slam)
+    keys = [slam.key(t) for t in (0, 1, 2)]
+    both = bound.covariances(keys, 0.05, truth)             # through Marginals
+    for k in keys:
+        one = bound.covariances([k], 0.05, truth)[k]
+        assert one == pytest.approx(both[k], rel=1e-9, abs=1e-15)
