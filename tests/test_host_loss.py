@@ -177,7 +177,11 @@ def test_the_drivers_keep_the_watchdog_fed_at_every_speedup(speedup):
             assert dog.fired == 0, name
             # the design is 0.1 s between polls plus a round trip; half the watchdog leaves room
             # for a loaded machine and still says the feed is well inside the timeout
-            assert 0 < dog.max_gap_s < WATCHDOG_S / 2, (name, dog.max_gap_s)
+            assert dog.max_gap_s < WATCHDOG_S / 2, (name, dog.max_gap_s)
+            # a gap is measured between two polls of a moving device: at 1000x an IPJR's 300 steps
+            # are over in ~4 ms, and on a loaded machine before its first poll (CI saw 0.0 so)
+            if speedup <= 20 or not name.startswith("ipjr"):
+                assert dog.max_gap_s > 0, (name, dog.max_gap_s)
 
 
 def test_the_rig_file_chooses_the_firmware(tmp_path):
