@@ -64,20 +64,21 @@ class _Server(ThreadingHTTPServer):
 
     def __init__(self, *args: Any, **kw: Any) -> None:
         super().__init__(*args, **kw)
-        self.slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
-        self._active = 0
+        self._active = 0                            # requests under way, each in its own thread
         self._idle = threading.Condition()
 
     def process_request(self, request: Any, client_address: Any) -> None:
-        if not self.slots.acquire(blocking=False):   # every slot busy: refuse at once, hold no thread
+        with self._idle:
+            busy = self._active >= MAX_CONNECTIONS
+            if not busy:
+                self._active += 1
+        if busy:                                    # every slot busy: refuse at once, hold no thread
             try:
                 request.sendall(b"HTTP/1.0 503 Service Unavailable\r\nContent-Length: 0\r\n\r\n")
             except OSError:
                 pass
             self.shutdown_request(request)
             return
-        with self._idle:
-            self._active += 1
         super().process_request(request, client_address)
 
     def handle_error(self, request: Any, client_address: Any) -> None:
@@ -91,7 +92,6 @@ class _Server(ThreadingHTTPServer):
         try:
             super().process_request_thread(request, client_address)
         finally:
-            self.slots.release()
             with self._idle:
                 self._active -= 1
                 self._idle.notify_all()
