@@ -8,7 +8,7 @@ import json
 import pytest
 
 from lab.core.structures.borg import build_borg
-from lab.studies.bench_layers import (FAULT_DEPLOYED_M, FAULT_OFFSET_M, GOOD_OFFSET_M, aggregate, layer_of,
+from lab.studies.bench_layers import (FAULT_DEPLOYED_M, FAULT_OFFSET_M, GOOD_OFFSET_M, aggregate, layer_of, to_markdown,
                                       plan_faults, scenario)
 
 
@@ -59,6 +59,23 @@ def test_the_figures_count_per_layer_and_per_size():
     assert (l0["modules"], l0["false_flags"], l0["faults_caught"]) == (2, 0, 1)
     assert (l1["unverified"], l1["false_flags"], l1["error_mm_median"]) == (1, 1, pytest.approx(0.8))
     assert l1["ratio_median"] == pytest.approx(4.0)
+    # trials journaled before the NEES was kept: no NEES, no frame, and the table still prints
+    assert whole["nees_mean"] is None and whole["frame_offset_mm_max"] is None
+    assert "| 2 | all |" in to_markdown({"command": "lab bench layers", "runs": 1, "wall_s": 40.0, "rows": rows})
+
+
+def test_the_nees_is_read_whole_and_about_each_runs_frame():
+    mods = [{"name": n, "layer": 0, "fault": fault, "verdict": "ok", "views": 4, "error_m": 0.0002, "sigma_m": 0.0004,
+             "replanned": False, "nees": nees, **({"nees_frame": nf} if nf is not None else {})}
+            for n, fault, nees, nf in (("a", False, 6.0, 1.0), ("b", False, 9.0, 2.0), ("c", True, 30.0, None),
+                                       ("d", False, None, None))]
+    trial = {"n": 2, "wall_s": 40.0, "peak_rss_mb": None, "slam_update_s_median": 0.01}
+    rows = aggregate([{**trial, "seed": 0, "modules": mods, "frame_offset_mm": 0.4, "frame_rotation_mrad": 0.2},
+                      {**trial, "seed": 1, "modules": mods, "frame_offset_mm": 0.1, "frame_rotation_mrad": 0.3}])
+    whole = rows[0]
+    # good modules only: the fault's NEES is not an honesty figure
+    assert whole["nees_mean"] == pytest.approx(7.5) and whole["nees_frame_mean"] == pytest.approx(1.5)
+    assert (whole["frame_offset_mm_max"], whole["frame_rotation_mrad_max"]) == (0.4, 0.3)
 
 
 def test_a_run_taken_as_it_was_found_leaves_the_time_per_module_to_the_others():

@@ -11,9 +11,13 @@ Figures per N and per layer (a module's layer: the cell row its nodes' mean heig
 - modules `unverified` (for want of a view or otherwise), good modules flagged (false flags),
   faults flagged;
 - good-module position error against the simulated truth (median, max; and the max over those
-  passed `ok`), |error| / stated 1-sigma (median), views per module, modules whose views were
-  re-planned;
-and per N: the run's wall time per module, its SLAM step (median), its peak memory.
+  passed `ok`), |error| / stated 1-sigma (median), position NEES (mean; 3 when the 1-sigma is
+  right), views per module, modules whose views were re-planned;
+- the NEES about each run's frame: the good modules' errors share one rigid motion per run, the
+  frame the turntable tags realise (`error_frame`), a single draw that can lift one run's NEES
+  far above 3 while the 1-sigma is honest; with it taken off, what is left is each module's own;
+and per N: the run's wall time per module, its SLAM step (median), its peak memory, and the
+largest common frame error of its runs (offset, rotation).
 
 Trials run through `lab.core.executor` (--workers N, or --scheduler on a Dask cluster); finished trials
 are journaled in --out/trials.jsonl, so the same command after an interruption resumes, and a
@@ -173,11 +177,29 @@ def trial(out: Path, n: int, seed: int, speedup: float) -> dict[str, Any]:
         rows.append({"name": m["name"], "layer": layer_of(model, m["name"]), "fault": kind not in ("none", "good"),
                      "verdict": m["verdict"], "views": m.get("views"),
                      "error_m": m.get("position_error_m"), "sigma_m": m.get("sigma_position_m"),
-                     "replanned": "re-planned" in (m.get("reason") or "")})
+                     "replanned": "re-planned" in (m.get("reason") or ""), "nees": m.get("position_nees")})
+    frame = _frame(model, s["modules"], rows)
     # a resumed run's memory is its processes'
     return {"n": n, "seed": seed, "result": s["result"], "wall_s": wall, "modules": rows,
             "peak_rss_mb": peak, "views": s.get("views"), "resumed": resumed,
-            "slam_update_s_median": run.slam_update_s_median}
+            "slam_update_s_median": run.slam_update_s_median, **frame}
+
+
+def _frame(model: Any, modules: list[dict[str, Any]], rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The run's common frame error over its good modules (`error_frame`): its size, and each good
+    module's NEES about it (`nees_frame` in its row)."""
+    from lab.studies.error_frame import fit_frame
+
+    read = [(m, r) for m, r in zip(modules, rows) if not r["fault"] and m.get("position_error_vector_m") is not None
+            and m.get("position_covariance_m2") is not None]
+    fit = fit_frame([model.module_by_name[m["name"]].structure_T_module.translation() for m, _ in read],
+                    [m["position_error_vector_m"] for m, _ in read], [m["position_covariance_m2"] for m, _ in read])
+    if fit is None:
+        return {"frame_offset_mm": None, "frame_rotation_mrad": None}
+    for (_, r), v in zip(read, fit.nees_about_frame):
+        r["nees_frame"] = float(v)
+    return {"frame_offset_mm": float(np.linalg.norm(fit.translation_m) * 1e3),
+            "frame_rotation_mrad": float(np.linalg.norm(fit.rotation_rad) * 1e3)}
 
 
 @dataclass(frozen=True)
@@ -198,6 +220,9 @@ def _row(key: dict[str, Any], mods: list[dict[str, Any]]) -> dict[str, Any]:
     read = [m for m in good if m["error_m"] is not None]
     err = np.array([m["error_m"] for m in read], float)
     ratio = np.array([m["error_m"] / m["sigma_m"] for m in read if m["sigma_m"]], float)
+    # trials journaled before the NEES was kept have none: their modules are left out of the means
+    nees = [m["nees"] for m in good if m.get("nees") is not None]
+    nees_frame = [m["nees_frame"] for m in good if m.get("nees_frame") is not None]
     return {**key, "modules": len(mods), "unverified": sum(m["verdict"] == UNVERIFIED for m in mods),
             "uncertain": sum(m["verdict"] == UNCERTAIN for m in mods),
             "false_flags": sum(m["verdict"] == FLAGGED for m in good), "good": len(good),
@@ -208,6 +233,8 @@ def _row(key: dict[str, Any], mods: list[dict[str, Any]]) -> dict[str, Any]:
             # the modules passed `ok`: what the verdict vouches for
             "ok_error_mm_max": max((m["error_m"] * 1e3 for m in read if m["verdict"] == OK), default=None),
             "ratio_median": float(np.median(ratio)) if ratio.size else None,
+            "nees_mean": float(np.mean(nees)) if nees else None,
+            "nees_frame_mean": float(np.mean(nees_frame)) if nees_frame else None,
             "views_per_module": float(np.mean([m["views"] or 0 for m in mods])) if mods else None}
 
 
@@ -224,7 +251,12 @@ def aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
                       "slam_update_ms_median": float(np.median([t["slam_update_s_median"] for t in ts]) * 1e3),
                       "peak_rss_mb": max((float(t["peak_rss_mb"]) for t in ts if t["peak_rss_mb"] is not None),
                                          default=None),
-                      "resumed": sum(t.get("resumed", 0) for t in ts)})
+                      "resumed": sum(t.get("resumed", 0) for t in ts),
+                      # the largest common frame error of a run (None: no run measured one)
+                      "frame_offset_mm_max": max((t["frame_offset_mm"] for t in ts if t.get("frame_offset_mm") is not None),
+                                                 default=None),
+                      "frame_rotation_mrad_max": max((t["frame_rotation_mrad"] for t in ts
+                                                      if t.get("frame_rotation_mrad") is not None), default=None)})
         rows.append(whole)
         for layer in range(n):
             rows.append(_row({"n": n, "layer": layer, "runs": len(ts)}, [m for m in mods if m["layer"] == layer]))
@@ -234,9 +266,10 @@ def aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def to_markdown(res: dict[str, Any]) -> str:
     lines = [study_heading(res), "",
              "| N | layer | runs | modules | unverified | uncertain | false flags | faults flagged | re-planned | "
-             "error median / max (mm) | max of `ok` (mm) | \\|err\\|/1σ median | views / module | run s / module | "
+             "error median / max (mm) | max of `ok` (mm) | \\|err\\|/1σ median | NEES mean (3) | NEES about the run's frame | "
+             "frame offset (mm) / rotation (mrad), worst run | views / module | run s / module | "
              "SLAM step (ms) | peak memory (MB) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
         whole = r["layer"] == "all"
         runs = f"{r['runs']} ({r['resumed']} resumed)" if r.get("resumed") else str(r["runs"])
@@ -244,6 +277,8 @@ def to_markdown(res: dict[str, Any]) -> str:
             f"| {r['n']} | {r['layer']} | {runs} | {r['modules']} | {r['unverified']} | {r['uncertain']} | "
             f"{r['false_flags']}/{r['good']} | {r['faults_caught']}/{r['faults']} | {r['replanned']} | "
             f"{cell(r['error_mm_median'])} / {cell(r['error_mm_max'])} | {cell(r.get('ok_error_mm_max'))} | {cell(r['ratio_median'])} | "
+            f"{cell(r.get('nees_mean'), '.1f')} | {cell(r.get('nees_frame_mean'), '.1f')} | "
+            f"{cell(r.get('frame_offset_mm_max') if whole else None)} / {cell(r.get('frame_rotation_mrad_max') if whole else None)} | "
             f"{cell(r['views_per_module'], '.1f')} | {cell(r.get('wall_s_per_module') if whole else None, '.1f')} | "
             f"{cell(r.get('slam_update_ms_median') if whole else None, '.1f')} | "
             f"{cell(r.get('peak_rss_mb') if whole else None, '.0f')} |")
@@ -259,6 +294,7 @@ def _progress(r: dict[str, Any]) -> str:
             f"{sum(m['verdict'] == FLAGGED for m in good)} false flags, faults "
             f"{sum(m['verdict'] == FLAGGED for m in mods if m['fault'])}/{sum(m['fault'] for m in mods)}, "
             f"error max {err.max() * 1e3 if err.size else float('nan'):.2f} mm, "
+            f"frame {cell(r.get('frame_offset_mm'))} mm / {cell(r.get('frame_rotation_mrad'))} mrad, "
             f"{'wall time unknown' if r['wall_s'] is None else format(r['wall_s'], '.0f') + ' s'}")
 
 
