@@ -78,6 +78,25 @@ def test_the_nees_is_read_whole_and_about_each_runs_frame():
     assert (whole["frame_offset_mm_max"], whole["frame_rotation_mrad_max"]) == (0.4, 0.3)
 
 
+def test_each_run_is_told_with_its_frame():
+    from lab.studies.bench_layers import per_run
+
+    mods = [{"name": "a", "layer": 0, "fault": False, "verdict": "ok", "views": 4, "error_m": 0.0009, "sigma_m": 0.0004,
+             "replanned": False, "nees": 12.0, "nees_frame": 2.0, "error_frame_m": 0.0003},
+            {"name": "b", "layer": 0, "fault": False, "verdict": "uncertain", "views": 9, "error_m": 0.002,
+             "sigma_m": 0.004, "replanned": False, "nees": 0.5, "nees_frame": 0.4, "error_frame_m": 0.0019},
+            {"name": "c", "layer": 0, "fault": True, "verdict": "ok", "views": 4, "error_m": 0.003, "sigma_m": 0.0004,
+             "replanned": False, "nees": 50.0}]
+    t = {"n": 3, "seed": 2, "modules": mods, "frame_offset_mm": 0.4, "frame_rotation_mrad": 0.2}
+    p = per_run(t)
+    # good modules only; the maxima over those passed `ok`
+    assert (p["nees_mean"], p["nees_frame_mean"]) == (pytest.approx(6.25), pytest.approx(1.2))
+    assert (p["ok_error_mm_max"], p["ok_error_frame_mm_max"]) == (pytest.approx(0.9), pytest.approx(0.3))
+    text = to_markdown({"command": "lab bench layers", "runs": 1, "wall_s": 1.0, "rows": aggregate([
+        {**t, "wall_s": 1.0, "peak_rss_mb": None, "slam_update_s_median": 0.01}]), "trials": [t]})
+    assert "| 3 | 2 | 0.40 | 0.20 | 6.2 | 1.2 | 0.90 | 0.30 |" in text
+
+
 def test_a_run_taken_as_it_was_found_leaves_the_time_per_module_to_the_others():
     mod = {"name": "a", "layer": 0, "fault": False, "verdict": "ok", "views": 4, "error_m": 0.0002,
            "sigma_m": 0.0004, "replanned": False}

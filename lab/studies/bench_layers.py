@@ -196,8 +196,9 @@ def _frame(model: Any, modules: list[dict[str, Any]], rows: list[dict[str, Any]]
                     [m["position_error_vector_m"] for m, _ in read], [m["position_covariance_m2"] for m, _ in read])
     if fit is None:
         return {"frame_offset_mm": None, "frame_rotation_mrad": None}
-    for (_, r), v in zip(read, fit.nees_about_frame):
+    for (_, r), v, e in zip(read, fit.nees_about_frame, fit.residuals_m):
         r["nees_frame"] = float(v)
+        r["error_frame_m"] = float(np.linalg.norm(e))
     return {"frame_offset_mm": float(np.linalg.norm(fit.translation_m) * 1e3),
             "frame_rotation_mrad": float(np.linalg.norm(fit.rotation_rad) * 1e3)}
 
@@ -282,7 +283,34 @@ def to_markdown(res: dict[str, Any]) -> str:
             f"{cell(r['views_per_module'], '.1f')} | {cell(r.get('wall_s_per_module') if whole else None, '.1f')} | "
             f"{cell(r.get('slam_update_ms_median') if whole else None, '.1f')} | "
             f"{cell(r.get('peak_rss_mb') if whole else None, '.0f')} |")
+    lines += ["", "Per run (good modules): the frame all of its modules share, the NEES whole and about that frame, "
+              "the largest error of a module passed `ok`, whole and about the frame:", "",
+              "| N | seed | frame offset (mm) | frame rotation (mrad) | NEES mean (3) | NEES about the frame | "
+              "max of `ok` (mm) | max of `ok` about the frame (mm) |",
+              "|---|---|---|---|---|---|---|---|"]
+    for t in res.get("trials", []):
+        p = per_run(t)
+        lines.append(f"| {p['n']} | {p['seed']} | {cell(p['frame_offset_mm'])} | {cell(p['frame_rotation_mrad'])} | "
+                     f"{cell(p['nees_mean'], '.1f')} | {cell(p['nees_frame_mean'], '.1f')} | "
+                     f"{cell(p['ok_error_mm_max'])} | {cell(p['ok_error_frame_mm_max'])} |")
     return "\n".join(lines)
+
+
+def per_run(t: dict[str, Any]) -> dict[str, Any]:
+    """One run's honesty figures: its frame, its good modules' NEES whole and about the frame, and
+    the largest error of a good module passed `ok`, whole and about the frame (None where the trial
+    was journaled before these were kept)."""
+    good = [m for m in t["modules"] if not m["fault"]]
+    ok = [m for m in good if m["verdict"] == OK and m["error_m"] is not None]
+    nees = [m["nees"] for m in good if m.get("nees") is not None]
+    nees_frame = [m["nees_frame"] for m in good if m.get("nees_frame") is not None]
+    about = [m["error_frame_m"] for m in ok if m.get("error_frame_m") is not None]
+    return {"n": t["n"], "seed": t["seed"], "frame_offset_mm": t.get("frame_offset_mm"),
+            "frame_rotation_mrad": t.get("frame_rotation_mrad"),
+            "nees_mean": float(np.mean(nees)) if nees else None,
+            "nees_frame_mean": float(np.mean(nees_frame)) if nees_frame else None,
+            "ok_error_mm_max": max((m["error_m"] * 1e3 for m in ok), default=None),
+            "ok_error_frame_mm_max": max(about) * 1e3 if about else None}
 
 
 def _progress(r: dict[str, Any]) -> str:

@@ -21,6 +21,7 @@ class FrameFit:
     translation_m: np.ndarray       # t: the common offset, at the modules' centroid
     rotation_rad: np.ndarray        # w: the common small rotation (axis x angle)
     nees_about_frame: np.ndarray    # each module's NEES with the common motion taken off
+    residuals_m: np.ndarray         # (N, 3) each module's error with the common motion taken off
 
 
 def fit_frame(positions_m: Sequence[Sequence[float]], errors_m: Sequence[Sequence[float]],
@@ -43,4 +44,4 @@ def fit_frame(positions_m: Sequence[Sequence[float]], errors_m: Sequence[Sequenc
     x, *_ = np.linalg.lstsq(a.reshape(-1, 6), e.ravel(), rcond=None)
     r = e - (a @ x)
     nees = np.einsum("ni,ni->n", r, np.linalg.solve(cov, r[..., None])[..., 0])
-    return FrameFit(x[:3], x[3:], nees)
+    return FrameFit(x[:3], x[3:], nees, r)
