@@ -43,6 +43,12 @@ def _kabsch(src: np.ndarray, dst: np.ndarray) -> Pose3:
     return Pose3(Rot3(R), cd - R @ cs)
 
 
+def _drop_along(diff: np.ndarray, axes: np.ndarray) -> None:
+    """Take each difference's component along its (unit, or zero) axis off it, in place: a
+    deviation a known mechanism explains (`explained_axes`)."""
+    diff -= (diff * axes).sum(axis=-1)[..., None] * axes
+
+
 def _most_consistent_base(ids: list[int], estimates: Mapping[int, Pose3], model: BorgModel, design: np.ndarray,
                           est: np.ndarray, axes: np.ndarray | None) -> int:
     """The index of the base tag whose prediction of every tag (estimate · design⁻¹ · design) has
@@ -65,7 +71,7 @@ def _most_consistent_base(ids: list[int], estimates: Mapping[int, Pose3], model:
         diff += f[None, :, :3, 3]
         diff -= est[:, None, :]
         if axes is not None:
-            diff -= (diff * axes[:, None, :]).sum(axis=-1)[..., None] * axes[:, None, :]
+            _drop_along(diff, axes[:, None, :])
         d = np.sqrt(np.einsum("tci,tci->ct", diff, diff))                      # (candidate, tag)
         part = np.partition(d, [lo, hi], axis=1)
         medians[s:s + m] = 0.5 * (part[:, lo] + part[:, hi])
@@ -88,15 +94,12 @@ def eliminate_tags(estimates: Mapping[int, Pose3], model: BorgModel, *, cutoff_m
             a = np.asarray(explained[t], dtype=float)
             axes[k] = a / np.linalg.norm(a)
 
-    def residuals(R: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """|est - (R design + p)| less the explained components; R (..., 3, 3), p (..., 3)."""
-        diff = est - (design @ np.swapaxes(R, -1, -2) + p[..., None, :])
-        if explained:
-            diff -= (diff * axes).sum(axis=-1)[..., None] * axes
-        return np.sqrt((diff * diff).sum(axis=-1))
-
     def distances(fit: Pose3) -> np.ndarray:
-        return residuals(fit.rotation().matrix(), fit.translation())
+        """|est - fit · design| less the explained components."""
+        diff = est - (design @ fit.rotation().matrix().T + fit.translation())
+        if explained:
+            _drop_along(diff, axes)
+        return np.sqrt((diff * diff).sum(axis=-1))
 
     # the paper's start: everything predicted from one base tag (the most consistent one if not given)
     def base_fit(b: int) -> Pose3:
