@@ -215,15 +215,19 @@ def layers_trial(t: Trial) -> dict[str, Any]:
     return trial(Path(s.out), s.n, t.seed, s.speedup)
 
 
+def _mean(mods: list[dict[str, Any]], key: str) -> float | None:
+    """The mean of a figure over the modules that have it (trials journaled before the NEES was
+    kept have none: their modules are left out), None if none has."""
+    values = [m[key] for m in mods if m.get(key) is not None]
+    return float(np.mean(values)) if values else None
+
+
 def _row(key: dict[str, Any], mods: list[dict[str, Any]]) -> dict[str, Any]:
     good = [m for m in mods if not m["fault"]]
     faults = [m for m in mods if m["fault"]]
     read = [m for m in good if m["error_m"] is not None]
     err = np.array([m["error_m"] for m in read], float)
     ratio = np.array([m["error_m"] / m["sigma_m"] for m in read if m["sigma_m"]], float)
-    # trials journaled before the NEES was kept have none: their modules are left out of the means
-    nees = [m["nees"] for m in good if m.get("nees") is not None]
-    nees_frame = [m["nees_frame"] for m in good if m.get("nees_frame") is not None]
     return {**key, "modules": len(mods), "unverified": sum(m["verdict"] == UNVERIFIED for m in mods),
             "uncertain": sum(m["verdict"] == UNCERTAIN for m in mods),
             "false_flags": sum(m["verdict"] == FLAGGED for m in good), "good": len(good),
@@ -234,8 +238,7 @@ def _row(key: dict[str, Any], mods: list[dict[str, Any]]) -> dict[str, Any]:
             # the modules passed `ok`: what the verdict vouches for
             "ok_error_mm_max": max((m["error_m"] * 1e3 for m in read if m["verdict"] == OK), default=None),
             "ratio_median": float(np.median(ratio)) if ratio.size else None,
-            "nees_mean": float(np.mean(nees)) if nees else None,
-            "nees_frame_mean": float(np.mean(nees_frame)) if nees_frame else None,
+            "nees_mean": _mean(good, "nees"), "nees_frame_mean": _mean(good, "nees_frame"),
             "views_per_module": float(np.mean([m["views"] or 0 for m in mods])) if mods else None}
 
 
@@ -302,13 +305,10 @@ def per_run(t: dict[str, Any]) -> dict[str, Any]:
     was journaled before these were kept)."""
     good = [m for m in t["modules"] if not m["fault"]]
     ok = [m for m in good if m["verdict"] == OK and m["error_m"] is not None]
-    nees = [m["nees"] for m in good if m.get("nees") is not None]
-    nees_frame = [m["nees_frame"] for m in good if m.get("nees_frame") is not None]
     about = [m["error_frame_m"] for m in ok if m.get("error_frame_m") is not None]
     return {"n": t["n"], "seed": t["seed"], "frame_offset_mm": t.get("frame_offset_mm"),
             "frame_rotation_mrad": t.get("frame_rotation_mrad"),
-            "nees_mean": float(np.mean(nees)) if nees else None,
-            "nees_frame_mean": float(np.mean(nees_frame)) if nees_frame else None,
+            "nees_mean": _mean(good, "nees"), "nees_frame_mean": _mean(good, "nees_frame"),
             "ok_error_mm_max": max((m["error_m"] * 1e3 for m in ok), default=None),
             "ok_error_frame_mm_max": max(about) * 1e3 if about else None}
 
