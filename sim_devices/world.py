@@ -62,9 +62,10 @@ from lab.core.scenario import BorgFault, Scenario
 from lab.core.structures.borg import BorgModel, build_borg
 from sim_devices.ipjr import IpjrActuator
 from sim_devices.motion import Axis
-from sim_devices.render import Defocus, TagLook, distortion_with_error, draw_tags, lighting_field, vignetting_gain
+from sim_devices.render import (QUIET_ZONE_CELLS, Defocus, TagLook, distortion_with_error, draw_tags, lighting_field,
+                                 vignetting_gain)
 from sim_devices.stewart import platform_pose
-from sim_devices.truss_geometry import TrussOccluders, in_camera, truss_occluders
+from sim_devices.truss_geometry import TagCard, TrussOccluders, in_camera, truss_occluders
 
 # The lab's lamp: the direction towards it in the world frame (above the structure, on the
 # camera's side); it shades the truss's struts and nodes (sim_devices.render_truss).
@@ -114,6 +115,10 @@ def _correction(about: np.ndarray, offset_m: Iterable[float], rotation_rad: Iter
     return Pose3(R, p + np.asarray(list(offset_m), dtype=float) - R.matrix() @ p)
 
 
+# a tag's card across, in black squares: the square (8 cells) and a quiet zone on each side
+_CARD_PER_SQUARE = (8.0 + 2.0 * QUIET_ZONE_CELLS) / 8.0
+
+
 class BorgTruth:
     """The BORG truss as built so far."""
 
@@ -125,10 +130,15 @@ class BorgTruth:
         self._tag_fix: dict[int, Pose3] = {}
         self._placement: dict[int, Pose3] = {}     # as glued: not a fault, part of the rig's error
         self._lock = threading.RLock()
+        # the truss drawn for a state (the placed modules, the truth's changes so far): a camera
+        # takes several frames of each, and drawing a 10x10x10 takes ~0.1 s
+        self._changes = 0
+        self._truss: tuple[tuple[tuple[str, ...], int], TrussOccluders] | None = None
 
     def set_tag_placement(self, tag: int, error: Pose3) -> None:
         """Where a tag was really glued: `error` composed on the right of its design pose."""
         self._placement[tag] = error
+        self._changes += 1
 
     # -- what the operator does ---------------------------------------------------------------------
     def _module(self, name: str):
@@ -163,6 +173,7 @@ class BorgTruth:
         rotated by roll-pitch-yaw (structure axes) about its anchor point."""
         m = self._module(name)
         self._module_fix[name] = _correction(m.structure_T_module.translation(), offset_m, rotation_rad)
+        self._changes += 1
 
     def set_deployed_height(self, name: str, height_m: float | None) -> None:
         """A deployable stopped short: its top (T) tag sits height_m above its bottom (B) tag
@@ -170,6 +181,7 @@ class BorgTruth:
         m = self._module(name)
         if m.kind != "deployable":
             raise UserError(f"module {name} is a {m.kind}, not a deployable: it has no deployed height")
+        self._changes += 1
         if height_m is None:
             self._height.pop(name, None)
             return
@@ -184,6 +196,7 @@ class BorgTruth:
             raise UserError(f"no tag {tag} on this BORG structure (ids 0..{max(self.model.tags)})")
         about = self.model.tags[tag].structure_T_tag.translation()
         self._tag_fix[tag] = _correction(about, offset_m, rotation_rad)
+        self._changes += 1
 
     def apply(self, faults: Iterable[BorgFault]) -> None:
         for f in faults:
@@ -227,9 +240,15 @@ class BorgTruth:
         """The struts and node bodies of the modules placed so far, where they really are
         (structure frame; `sim_devices.truss_geometry`)."""
         with self._lock:
-            placed = list(self.placed)
-            return truss_occluders(self.model, placed, {n: self.structure_T_module(n) for n in placed},
-                                   {n: self.deployed_height_m(n) for n in placed})
+            placed = tuple(self.placed)
+            if self._truss is not None and self._truss[0] == (placed, self._changes):
+                return self._truss[1]
+            cards = [TagCard(self.structure_T_tag(t), self.model.tags[t].size_m / 2.0 * _CARD_PER_SQUARE)
+                     for n in placed for t in self.model.module_by_name[n].tags]
+            occ = truss_occluders(self.model, placed, {n: self.structure_T_module(n) for n in placed},
+                                  {n: self.deployed_height_m(n) for n in placed}, cards=cards)
+            self._truss = ((placed, self._changes), occ)
+            return occ
 
     def visible_tag_ids(self) -> list[int]:
         """Tags that exist right now: the turntable's and those of placed modules."""

@@ -16,7 +16,7 @@ from lab.core.geometry import Pose3, Rot3
 from lab.core.structures.borg import build_borg
 from sim_devices.render import Defocus, render_tags, tag_corners_px
 from sim_devices.render_truss import STRUT_ALBEDO, draw_truss
-from sim_devices.truss_geometry import (NODE_DIAMETER_M, STRUT_DIAMETER_M, TrussOccluders, in_camera,
+from sim_devices.truss_geometry import (NODE_DIAMETER_M, STRUT_DIAMETER_M, TagCard, TrussOccluders, in_camera,
                                         truss_occluders)
 from sim_devices.world import SimWorld
 
@@ -75,6 +75,63 @@ def test_the_placed_modules_struts_and_nodes_at_their_true_poses():
     moved = Pose3(Rot3(), np.array([0.002, 0.0, 0.0])).compose(m.structure_T_module)
     off = truss_occluders(model, ["13D"], {"13D": moved})
     assert np.allclose(off.node_centre - truss_occluders(model, ["13D"]).node_centre, [0.002, 0.0, 0.0])
+
+
+def _gap_to_card(a, b, card: TagCard) -> float:
+    """The nearest approach of segment a-b's axis to the card's square (m)."""
+    M = card.structure_T_tag.matrix()
+    la, lb = (np.asarray(a) - M[:3, 3]) @ M[:3, :3], (np.asarray(b) - M[:3, 3]) @ M[:3, :3]
+    p = la + np.linspace(0.0, 1.0, 20001)[:, None] * (lb - la)
+    q = np.column_stack([np.clip(p[:, :2], -card.half_width_m, card.half_width_m), np.zeros(len(p))])
+    return float(np.linalg.norm(p - q, axis=1).min())
+
+
+def test_a_strut_never_crosses_a_tag_card_it_would_run_through():
+    model = build_borg(3)
+    plain = truss_occluders(model, ["13D"])
+    # a card 62.5 mm across half, its face 4 mm from one strut's axis, square to the line from the
+    # axis: the strut (9.5 mm radius) would run 5.5 mm through it, from behind
+    s0 = 3
+    a, b = plain.strut_a[s0], plain.strut_b[s0]
+    axis = (b - a) / np.linalg.norm(b - a)
+    side = np.cross(axis, [0.0, 0.0, 1.0] if abs(axis[2]) < 0.9 else [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    centre = (a + b) / 2 + 0.004 * side
+    card = TagCard(Pose3(Rot3(np.column_stack([axis, np.cross(side, axis), side])), centre), 0.0625)
+    assert _gap_to_card(a, b, card) == pytest.approx(0.004, abs=1e-6)
+    occ = truss_occluders(model, ["13D"], cards=[card])
+    moved = np.linalg.norm(occ.strut_a - plain.strut_a, axis=1)
+    # the crossing strut alone moves, by what it lacked, away from the card on its axis's side,
+    # and now clears it; the rest of the truss and the node bodies stay
+    assert np.flatnonzero(moved > 0).tolist() == [s0]
+    assert moved[s0] == pytest.approx(R_STRUT - 0.004, abs=2e-4)
+    assert np.dot(occ.strut_a[s0] - plain.strut_a[s0], side) < 0
+    assert R_STRUT <= _gap_to_card(occ.strut_a[s0], occ.strut_b[s0], card) < R_STRUT + 3e-4
+    assert np.array_equal(occ.node_centre, plain.node_centre)
+    # a card clear of every strut moves none
+    clear = TagCard(Pose3(card.structure_T_tag.rotation(), centre + 0.03 * side), 0.0625)
+    assert np.array_equal(truss_occluders(model, ["13D"], cards=[clear]).strut_a, plain.strut_a)
+
+
+def test_a_turned_neighbour_does_not_swing_a_strut_through_a_tag():
+    """N = 9 seed 1 of the layer study: 190P, turned 1.5 degrees, brought node 497; 235P's side
+    from it to node 598 ran 0.3 mm through 235P's own tag 341, from every view, and the tag could
+    never be read."""
+    import tomllib
+
+    from lab.core.scenario import parse_scenario
+    from lab.studies.bench_layers import plan_faults, scenario
+
+    w = SimWorld(load_rig(), parse_scenario(tomllib.loads(scenario(1, plan_faults(9, 1)))), borg_n=9)
+    names = [m.name for m in w.borg.model.modules]
+    for name in names[:names.index("235P") + 1]:
+        w.borg.place(name)
+    occ = w.borg.truss()
+    card = TagCard(w.borg.structure_T_tag(341), 0.0625)
+    edge = occ.strut_edge.index((497, 598))
+    assert _gap_to_card(occ.strut_a[edge], occ.strut_b[edge], card) >= R_STRUT
+    w.borg.remove("235P")                                 # and the world draws anew when it changes
+    assert (497, 598) not in w.borg.truss().strut_edge
 
 
 def test_the_world_draws_what_it_has_placed():
