@@ -755,11 +755,15 @@ class BorgProcedure:
         from concurrent.futures import Future, ThreadPoolExecutor
 
         rec = run.recorder
-        # a view's frame is detected and logged in one worker thread while the devices move on to
-        # the next view (in view order; the recorder is thread-safe): the round then costs its moves
-        # and one detection, not its moves plus every detection
+        # a view's frame is detected, logged and added to the graph (unsolved) in one worker thread
+        # while the devices move on to the next view (in view order; the recorder is thread-safe,
+        # and nothing else touches the graph until the round's solve): the round then costs its
+        # moves, one detection and the solve, not its moves plus every detection and every view's
+        # factors.  A failure part-way stops the run, whose resume rebuilds the graph from its
+        # checkpoint, so a round's views never stay in the graph unsolved.
         pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="borg-detect")
-        pending: list[Future[tuple[dict[str, Any], list[Any]]]] = []
+        pending: list[Future[tuple[dict[str, Any], float]]] = []
+        self.measure.begin_round(name)
         try:
             for j, view in enumerate(views_planned):
                 k = first_k + j
@@ -767,7 +771,7 @@ class BorgProcedure:
                 # truth, for scoring and the bound only (the estimator never reads it), taken now:
                 # the world moves on with the devices
                 truth = self._truth_at_capture() if self.bench.simulated else None
-                pending.append(pool.submit(self._view_record, rec, view, frame, world_T_camera, truth,
+                pending.append(pool.submit(self._view_into_graph, rec, view, frame, world_T_camera, truth,
                                            {"module": name, "step": spec.index, "attempt": attempt, "round": rnd,
                                             "view": k}))
             done = [f.result() for f in pending]        # a worker's exception is raised here
@@ -779,10 +783,11 @@ class BorgProcedure:
         self.views_done.extend(views)
         self._check_rig_agrees(views)
         t0 = time.perf_counter()
-        self.measure.add_step(name, views, detections=[parsed for _, parsed in done])
+        self.measure.end_round(name)
         solve_s = time.perf_counter() - t0
         self._check_structure_fits()
         rec.log_metric("slam/update_s", solve_s, "s")
+        rec.log_metric("slam/views_s", sum(s for _, s in done), "s")
         result = self.measure.verdict(name)
         self._log_estimates(run, set(self.model.module_by_name[name].tags))
         for pose, cov in self.measure.camera_estimates():
@@ -793,6 +798,15 @@ class BorgProcedure:
         world = self.bench.sim.world
         return {"structure_T_camera": world.world_T_structure().inverse().compose(world.world_T_camera()),
                 "camera": world.camera, "tags": world.tags_in_view()}
+
+    def _view_into_graph(self, rec: Any, view: View, frame: Any, world_T_camera: Any,
+                         truth: dict[str, Any] | None, ids: dict[str, Any]) -> tuple[dict[str, Any], float]:
+        """`_view_record`, then the view into the graph, unsolved: the record, and the seconds the
+        graph took (the round's `slam/views_s`)."""
+        record, detections = self._view_record(rec, view, frame, world_T_camera, truth, ids)
+        t0 = time.perf_counter()
+        self.measure.add_view(record, detections)
+        return record, time.perf_counter() - t0
 
     def _view_record(self, rec: Any, view: View, frame: Any, world_T_camera: Any, truth: dict[str, Any] | None,
                      ids: dict[str, Any]) -> tuple[dict[str, Any], list[Any]]:
@@ -820,8 +834,8 @@ class BorgProcedure:
         return record, self.measure.detections_from_json(record["detections"])
 
     def _check_rig_agrees(self, views: list[dict[str, Any]]) -> None:
-        """Before the round's views reach the graph: the rim tags where the calibration puts them,
-        else the run stops naming the rig, not the structure (procedures/rig_consistency.py)."""
+        """Before the round's views are solved: the rim tags where the calibration puts them, else
+        the run stops naming the rig, not the structure (procedures/rig_consistency.py)."""
         if self.rig_calibration is None or self.uncalibrated:
             return
         from procedures.rig_consistency import turntable_disagreement

@@ -86,18 +86,32 @@ class Measurement:
         """A step's views (or a further round of them for the same module).  The module's tags are
         held out of the semantic relations until `finish`: its verdict is read from the
         measurement alone, however many rounds of views it takes.  `detections`: each view's
-        `detections_from_json(view["detections"])`, when the caller has parsed them already."""
+        `detections_from_json(view["detections"])`, when the caller has parsed them already.
+        The same as `begin_round`, `add_view` for each view, `end_round`."""
+        if detections is None:
+            detections = [self.detections_from_json(v["detections"]) for v in views]
+        self.begin_round(module)
+        for v, seen in zip(views, detections, strict=True):
+            self.add_view(v, seen)
+        self.end_round(module)
+
+    def begin_round(self, module: str) -> None:
+        """A round of views of `module` begins: `add_view` each as it is detected, then `end_round`."""
         if module not in self.placed:
             self.placed.append(module)
         self.last_views = []
-        if detections is None:
-            detections = [self.detections_from_json(v["detections"]) for v in views]
-        for v, seen in zip(views, detections, strict=True):
-            structure_T_camera = Pose3(np.asarray(v["structure_T_camera"]))
-            motion = ViewMotion(float(v["turntable_rad"]), tuple(float(x) for x in v["stewart_pose"]),
-                                float(v.get("lift_m", 0.0)))
-            self.last_views.append(self.slam.add_view(structure_T_camera, seen,
-                                                      motion=motion if self.rig is not None else None))
+
+    def add_view(self, view: dict[str, Any], detections: list[Detection]) -> None:
+        """One view of the round into the graph (its camera, its factors, its new tags' sightings),
+        not yet solved: a run adds each while the devices move to the next view."""
+        structure_T_camera = Pose3(np.asarray(view["structure_T_camera"]))
+        motion = ViewMotion(float(view["turntable_rad"]), tuple(float(x) for x in view["stewart_pose"]),
+                            float(view.get("lift_m", 0.0)))
+        self.last_views.append(self.slam.add_view(structure_T_camera, detections,
+                                                  motion=motion if self.rig is not None else None))
+
+    def end_round(self, module: str) -> None:
+        """The round's views solved: the module's tags measured, tags off the design rejected."""
         self._measured[module] = self.slam.update(snapshot=self.model.module_by_name[module].tags, hold=True)
         self._eliminate()
 

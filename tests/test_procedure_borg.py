@@ -101,13 +101,18 @@ def test_injected_faults_are_flagged_rejected_and_the_rest_ok(faulted_run, case)
     assert sum(m.topic == topics.DETECTIONS for m in msgs) >= 2 * case.modules
     verdict_msgs = [m.message for m in msgs if m.topic == topics.VERDICTS]
     assert {v.module for v in verdict_msgs} == set(verdicts)
-    # every tag's estimate each round; every tag's covariance at the first, then the module's
+    # every tag's estimate each round; every tag's covariance at the first, then the module's, and
+    # every tag's again every so many rounds (BorgProcedure._log_estimates)
     sets = [m.message for m in msgs if m.topic == topics.TAG_ESTIMATES]
     assert len(sets) >= case.modules and all(len(e.covariance) == 36 for e in sets[0].estimates)
     module_tags = {f"tag/{t}" for v in verdict_msgs for t in v.tag_ids}
+    partial = 0
     for later in sets[1:]:
         with_cov = {e.entity for e in later.estimates if len(e.covariance)}
-        assert with_cov and with_cov <= module_tags and len(later.estimates) > len(with_cov)
+        if len(with_cov) < len(later.estimates):
+            partial += 1
+            assert with_cov and with_cov <= module_tags
+    assert partial >= (len(sets) - 1) // 2
     assert {m.message.device for m in msgs if m.topic == topics.COMMS} >= {"turntable", "stewart", "camera"}
     assert read_summary(out / "run.mcap").stop.result == "completed"
 
