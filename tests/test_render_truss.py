@@ -18,7 +18,7 @@ from sim_devices.render import Defocus, render_tags, tag_corners_px
 from sim_devices.render_truss import STRUT_ALBEDO, draw_truss
 from sim_devices.truss_geometry import (NODE_DIAMETER_M, STRUT_DIAMETER_M, TagCard, TrussOccluders, in_camera,
                                         truss_occluders)
-from sim_devices.world import SimWorld
+from sim_devices.world import BorgTruth, SimWorld
 
 K = np.array([[914.0, 0.0, 639.5], [0.0, 914.0, 359.5], [0.0, 0.0, 1.0]])
 DIST = np.array([-0.05, 0.01, 0.0, 0.0, 0.0])      # the sim rig's lens
@@ -122,16 +122,17 @@ def test_a_turned_neighbour_does_not_swing_a_strut_through_a_tag():
     from lab.core.scenario import parse_scenario
     from lab.studies.bench_layers import plan_faults, scenario
 
-    w = SimWorld(load_rig(), parse_scenario(tomllib.loads(scenario(1, plan_faults(9, 1)))), borg_n=9)
-    names = [m.name for m in w.borg.model.modules]
+    truth = BorgTruth(build_borg(9))
+    truth.apply(parse_scenario(tomllib.loads(scenario(1, plan_faults(9, 1)))).borg_faults)
+    names = [m.name for m in truth.model.modules]
     for name in names[:names.index("235P") + 1]:
-        w.borg.place(name)
-    occ = w.borg.truss()
-    card = TagCard(w.borg.structure_T_tag(341), 0.0625)
+        truth.place(name)
+    occ = truth.truss()
+    card = TagCard(truth.structure_T_tag(341), 0.0625)
     edge = occ.strut_edge.index((497, 598))
     assert _gap_to_card(occ.strut_a[edge], occ.strut_b[edge], card) >= R_STRUT
-    w.borg.remove("235P")                                 # and the world draws anew when it changes
-    assert (497, 598) not in w.borg.truss().strut_edge
+    truth.remove("235P")                                  # and the truss is drawn anew when it changes
+    assert (497, 598) not in truth.truss().strut_edge
 
 
 def test_the_world_draws_what_it_has_placed():
