@@ -97,12 +97,11 @@ def test_a_re_plan_around_a_short_deployable_sees_the_tag_the_design_plans_misse
 
 
 def test_a_plan_a_short_deployable_crosses_is_made_again_before_its_views_are_taken():
-    """At N = 4, 71D deployed to 0.35 m swings a strut across tag 120 of 105S in one of the four
-    views planned for it from the design (turntable +130 deg).  A run that has measured 71D short
-    plans 105S again before taking any: the rendered frame of the crossed view lacks the tag, as
-    predicted, and every view of the new plan shows it; a run with 71D deployed keeps its plan.
-    (Before the planner kept half a cell of margin to the detector's hiding rule, 70D short crossed
-    all 11 of 105S's views the same way; the margin's plans keep clear of it.)"""
+    """At N = 4, 70D deployed to 0.35 m swings a strut across tag 120 of 105S from all 11 views
+    planned for it; the plan, made before anything moved, spends 11 of the 12 views of the budget
+    on them.  A run that has measured 70D short plans 105S again before taking any (the rendered
+    frames of the new plan show the tag, the old plan's do not); a run with 70D deployed keeps
+    its plan."""
     from estimation.semantics import DeployCheck
     from lab.cli.run import _build
 
@@ -113,17 +112,12 @@ def test_a_plan_a_short_deployable_crosses_is_made_again_before_its_views_are_ta
         before = proc.surveys["105S"]
         assert proc._checked_plan("105S", before, None) is before          # nothing measured short
         short = DeployCheck(0.35, 0.78, 0.0, 0.0, True, False, "not fully deployed")
-        proc.measure.slam.not_deployed = lambda: {"71D": short}
-        struts = proc.planner.adapted(proc.planner.structure_T_camera, {}, None, None, {"71D": 0.35})
-        crossed = {view for view, tag in struts.hidden_by_struts("105S", names[:105], before.views, before.expected)
-                   if tag == 120}
-        assert crossed
+        proc.measure.slam.not_deployed = lambda: {"70D": short}
         after = proc._checked_plan("105S", before, None)
         assert after is not before and after.views and proc.surveys["105S"] is after
-        assert "tag 120 behind the struts of 71D, measured short" in proc._plan_notes["105S"]
-        assert not struts.hidden_by_struts("105S", names[:105], after.views, after.expected)
+        assert "tag 120 behind the struts of 70D, measured short" in proc._plan_notes["105S"]
         world = bench.sim.world
-        world.borg.set_deployed_height("71D", 0.35)
+        world.borg.set_deployed_height("70D", 0.35)
         for name in names:
             world.borg.place(name)
         detector = TagDetector(proc.intrinsics.K, proc.intrinsics.dist, {t: s.size_m for t, s in proc.model.tags.items()})
@@ -133,26 +127,25 @@ def test_a_plan_a_short_deployable_crosses_is_made_again_before_its_views_are_ta
 
         old = [v for v, seen in zip(before.views, before.expected) if 120 in seen]
         new = [v for v, seen in zip(after.views, after.expected) if 120 in seen]
-        assert [shows(v) for v in old] == [v not in crossed for v in old]    # the prediction, frame by frame
-        assert len(new) >= 2 and all(map(shows, new))
+        assert sum(map(shows, old[:4])) == 0
+        assert sum(map(shows, new)) >= 2            # the coverage the plan asks: two sightings at least
     finally:
         proc.close()
 
 
 @pytest.mark.slow          # 105 modules of a 4x4x4 (~3 min); CI checks the plan itself (above)
-def test_a_4x4x4_run_with_71d_short_verifies_105s(lab, tmp_path):
-    """The same as a run: 71D is flagged short, 105S planned again before its views and `ok`.
-    (With 70D short and plans at the detector's own margin, 105S ended `unverified` before the
-    check: "tag 120 seen in 0 of 11 view(s); ...; still short of views after 12 view(s)".)"""
+def test_a_4x4x4_run_with_70d_short_verifies_105s(lab, tmp_path):
+    """The same as a run: before the check, 105S ended `unverified` ("tag 120 seen in 0 of 11
+    view(s); 1 more planned ...; still short of views after 12 view(s)")."""
     import json
 
     scenario = tmp_path / "short.toml"
-    scenario.write_text('seed = 0\n\n[[borg.fault]]\nkind = "partial_deploy"\nmodule = "71D"\nheight_m = 0.35\n')
+    scenario.write_text('seed = 0\n\n[[borg.fault]]\nkind = "partial_deploy"\nmodule = "70D"\nheight_m = 0.35\n')
     out = tmp_path / "run"
     r = lab(["run", "borg", "--n", "4", "--modules", "105", "--auto", "--quiet", "--on-flag", "continue",
              "--speedup", "100", "--scenario", str(scenario), "--out", str(out)], timeout=900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     modules = {m["name"]: m for m in json.loads((out / "summary.json").read_text())["modules"]}
-    assert modules["71D"]["verdict"] == "flagged"
+    assert modules["70D"]["verdict"] == "flagged"
     assert modules["105S"]["verdict"] == "ok", modules["105S"]
     assert "planned again before its views" in modules["105S"]["reason"]

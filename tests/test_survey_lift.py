@@ -106,8 +106,8 @@ def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> lis
         covered = max((np.prod(np.clip(np.minimum(hi, h2) - np.maximum(lo, l2), 0, None)) for l2, h2, _ in kept),
                       default=0.0)
         # the detector's rule (fiducials.partly_hidden): a nearer tag's quiet zone across the band
-        # around this one's black square, with the planner's own margin beyond the detector's
-        band = grown_quad(uv, 0.5 + c.hiding_margin_cells).astype(np.float32)
+        # around this one's black square
+        band = grown_quad(uv, 0.5).astype(np.float32)
         cell = abs(cv2.contourArea(uv.astype(np.float32))) / 64.0
         crossed = any(cv2.intersectConvexConvex(grown_quad(q, 1.0).astype(np.float32), band)[0]
                       > HIDDEN_MIN_OVERLAP_CELLS2 * cell for _, _, q in kept)
