@@ -13,10 +13,7 @@ expected in a view when its four corners project into the image with a margin, i
 to decode, it faces the camera within `max_view_angle`, and no nearer tag covers it: neither a
 quarter of its image box (`occlusion_overlap`) nor, by the detector's own rule
 (`estimation.fiducials.partly_hidden`), the band around its black square with its quiet zone -- a
-nearer tag's white border across one corner is enough for the detector to drop the tag.  The
-prediction keeps a margin of `hiding_margin_cells` beyond the detector's own: what the plan does not
-know (the rig's true errors, a neighbour placed or turned off its design) moves a tag's image by
-half a cell at 3-4 m.
+nearer tag's white border across one corner is enough for the detector to drop the tag.
 
 A rig with a lift (a vertical stage under the Stewart base) gives the candidates heights too: the
 planner picks the fewest heights, from a grid over the lift's travel, that see every module of the
@@ -67,6 +64,7 @@ _HIDDEN_MARGIN_CELLS = float(DetectorConfig().hidden_margin_cells or 0.0)
 # (a square grown by c of its 8 cells reaches c/8 of its side in the tag's plane; perspective is
 # allowed to double that)
 _OUTER_REACH = 2 * _QUIET_CELLS / 8
+_INNER_REACH = 2 * _HIDDEN_MARGIN_CELLS / 8
 
 
 @dataclass(frozen=True)
@@ -92,12 +90,6 @@ class SurveyConfig:
     max_view_angle_rad: float = np.radians(62.0)
     max_distance_m: float = 4.5
     occlusion_overlap: float = 0.25       # fraction of a tag's box covered by a nearer tag's box
-    # Cells the prediction of the detector's hiding rule adds to the detector's own margin: the
-    # prediction is off by what the plan does not know -- the rig's true errors, a neighbour placed
-    # off its design, the lens -- and with the rule's own margin a view predicted 0.6 cell clear
-    # was hidden in 11 of 12 views (N = 8, 397S's tag 524 behind 396S's, turned 1.5 deg: 0.02-0.07
-    # cell in the frames), and the module came out `uncertain` at a 1-sigma of 3 mm.
-    hiding_margin_cells: float = 0.5
     angle_offsets_rad: tuple[float, ...] = tuple(np.radians([0.0, -25.0, 25.0, -10.0, 10.0, -18.0, 18.0, -32.0, 32.0]))
     stewart_poses: tuple[tuple[float, ...], ...] = (
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
@@ -354,16 +346,14 @@ class SurveyPlanner:
         nearer = np.arange(len(idx))[None, :] < rows[:, None]
         # the detector's rule, on the pairs whose boxes, grown past what the quiet zone and the
         # margin can add under any perspective the candidates see, still meet
-        margin = _HIDDEN_MARGIN_CELLS + self.config.hiding_margin_cells
-        inner_reach = 2 * margin / 8
         size = hi - lo
         o_lo, o_hi = lo - _OUTER_REACH * size, hi + _OUTER_REACH * size
-        i_lo, i_hi = lo[rows] - inner_reach * size[rows], hi[rows] + inner_reach * size[rows]
+        i_lo, i_hi = lo[rows] - _INNER_REACH * size[rows], hi[rows] + _INNER_REACH * size[rows]
         touch = (np.all(o_lo[None] < i_hi[:, None], axis=2) & np.all(i_lo[:, None] < o_hi[None], axis=2)
                  & nearer & ~covers)
         for i, j in zip(*np.nonzero(touch)):
             near, far = g.quad[g.row[idx[j]]], g.quad[g.row[idx[rows[i]]]]
-            band = grown_quad(far, margin).astype(np.float32)
+            band = grown_quad(far, _HIDDEN_MARGIN_CELLS).astype(np.float32)
             shared, _ = cv2.intersectConvexConvex(grown_quad(near, _QUIET_CELLS).astype(np.float32), band)
             if shared > HIDDEN_MIN_OVERLAP_CELLS2 * abs(cv2.contourArea(far.astype(np.float32))) / 64.0:
                 covers[i, j] = True
