@@ -144,8 +144,7 @@ def in_camera(occ: TrussOccluders, camera_T_structure: Pose3) -> TrussOccluders:
                           occ.node_centre @ R.T + t, occ.node_radius_m, occ.strut_edge, occ.node_id)
 
 
-# samples along a strut for its nearest approach to a card: a 0.7 m diagonal in 1.75 mm steps, each
-# then refined by one step of the convex distance
+# samples along a strut for its nearest approach to a card: a 0.7 m diagonal in 1.75 mm steps
 _SAMPLES = 401
 _CLEARANCE_M = 1e-4
 
@@ -182,20 +181,17 @@ def _clear_of_cards(a: np.ndarray, b: np.ndarray, radius_m: float, cards: Sequen
     s = np.clip((w * d).sum(1) / np.maximum((d * d).sum(1), 1e-12), 0.0, 1.0)
     near = np.linalg.norm(w - s[:, None] * d, axis=1) < reach[ci]
     ci, si = ci[near], si[near]
-    crossing = _crossing(a[si], b[si], R[ci], t[ci], hw[ci], radius_m)
+    crossing = _nearest(a[si], b[si], R[ci], t[ci], hw[ci])[2].min(axis=0) < radius_m
     for c, i in zip(ci[crossing], si[crossing]):       # a few a study: one at a time, each on the moved strut
         for _ in range(3):                              # a move may bring another stretch nearest
-            la, lb = (a[i] - t[c]) @ R[c], (b[i] - t[c]) @ R[c]
-            p = la + _U[:, 0, :] * (lb - la)
-            q = np.column_stack([np.clip(p[:, :2], -hw[c], hw[c]), np.zeros(len(p))])
-            gap = np.linalg.norm(p - q, axis=1)
+            p, q, gap = (x[:, 0] for x in _nearest(a[i:i + 1], b[i:i + 1], R[c:c + 1], t[c:c + 1], hw[c:c + 1]))
             j = int(np.argmin(gap))
             if gap[j] >= radius_m:
                 break
             if gap[j] > 1e-9:
                 away = (p[j] - q[j]) / gap[j]
             else:                                       # the axis meets the card: the side its middle is on
-                away = np.array([0.0, 0.0, 1.0 if la[2] + lb[2] >= 0.0 else -1.0])
+                away = np.array([0.0, 0.0, 1.0 if p[0, 2] + p[-1, 2] >= 0.0 else -1.0])
             shift = R[c] @ ((radius_m - gap[j] + _CLEARANCE_M) * away)
             a[i] += shift
             b[i] += shift
@@ -204,11 +200,14 @@ def _clear_of_cards(a: np.ndarray, b: np.ndarray, radius_m: float, cards: Sequen
 _U = np.linspace(0.0, 1.0, _SAMPLES)[:, None, None]
 
 
-def _crossing(a: np.ndarray, b: np.ndarray, R: np.ndarray, t: np.ndarray, hw: np.ndarray, radius_m: float) -> np.ndarray:
-    """(P,) whether strut a[k]-b[k] comes within `radius_m` of the card (R[k], t[k], half-width hw[k])."""
+def _nearest(a: np.ndarray, b: np.ndarray, R: np.ndarray, t: np.ndarray,
+             hw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points along each strut a[k]-b[k] in its card's frame (R[k], t[k]: the card is |x|, |y| <=
+    hw[k], z = 0), the card's nearest point to each, and their distance: (samples, P, 3) twice and
+    (samples, P)."""
     la = np.einsum("pij,pi->pj", R, a - t)
     lb = np.einsum("pij,pi->pj", R, b - t)
-    p = la[None] + _U * (lb - la)[None]                                 # (samples, P, 3)
-    q = np.clip(p[..., :2], -hw[None, :, None], hw[None, :, None])
-    gap = np.sqrt(((p[..., :2] - q) ** 2).sum(2) + p[..., 2] ** 2)
-    return gap.min(0) < radius_m
+    p = la[None] + _U * (lb - la)[None]
+    q = np.concatenate([np.clip(p[..., :2], -hw[None, :, None], hw[None, :, None]), np.zeros(p.shape[:2] + (1,))],
+                       axis=2)
+    return p, q, np.linalg.norm(p - q, axis=2)
