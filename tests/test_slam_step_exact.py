@@ -313,3 +313,23 @@ def test_the_modules_tags_go_last_in_the_tree_and_change_no_estimate_and_no_marg
     assert not {"t36", "t37", "t38"} <= set(_root_frontals(free, tmp_path))
     last.release([36, 37, 38])
     assert last._last == []
+
+
+def test_a_pair_brought_to_the_root_keeps_its_estimate_and_its_joint_marginal(tmp_path):
+    """`_to_root` re-eliminates a pair into the root, relinearising nothing: every estimate and
+    the pair's joint marginal are what they were, to round-off.  (In this small graph every tag is
+    at the root already: the pair is a tag and the first view's camera, which is not.)"""
+    slam = _run()
+    a, b = C(0), slam.key(0)
+    assert "c0" not in _root_frontals(slam, tmp_path)
+    before = {t: slam.tag_pose(t) for t in slam.tags}
+    joint = slam.isam.jointMarginalCovariance([a, b])
+    blocks = [joint.at(a, a), joint.at(a, b), joint.at(b, b)]
+    slam._to_root([a, b])
+    assert {"c0", "t0"} == set(_root_frontals(slam, tmp_path)[-2:])
+    for t, pose in before.items():
+        assert np.abs(slam.tag_pose(t).translation() - pose.translation()).max() < 1e-12
+        assert np.abs(gtsam.Rot3.Logmap(slam.tag_pose(t).rotation().between(pose.rotation()))).max() < 1e-12
+    joint = slam.isam.jointMarginalCovariance([a, b])
+    for got, want in zip([joint.at(a, a), joint.at(a, b), joint.at(b, b)], blocks):
+        assert got == pytest.approx(want, rel=1e-9, abs=1e-15)
