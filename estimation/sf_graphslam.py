@@ -52,7 +52,11 @@ C = gtsam.symbol_shorthand.C   # camera views
 _T = gtsam.symbol_shorthand.T  # tags: T(tag id + GENERATION * generation)
 _S = gtsam.symbol_shorthand.S  # each printed tag's scale error (SlamConfig.tag_scale_sigma)
 GENERATION = 10_000             # a re-placed module's tags are new map elements
-JOINT_CHUNK = 64                # tags per joint marginal in `tag_covariances`
+# tags per joint marginal in `tag_covariances`: each call walks the tree's shortcuts, and a joint's
+# dense part grows as its cube.  Every tag of an N = 8 run at round 300 (418 tags), CPU from cold
+# shortcuts: 64 a chunk 15.0 s, 128 8.6 s, 256 3.9-4.2 s, 512 7.8 s, all at once 8.6 s; at N = 5
+# (147 tags) 0.2 s whichever
+JOINT_CHUNK = 256
 # the deployment check's fixed tolerances, widened by the pair's noise where it is measured worse
 DEPLOY_LATERAL_MIN_M = 0.010
 DEPLOY_ROTATION_MIN_RAD = math.radians(2.0)
