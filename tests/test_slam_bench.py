@@ -227,3 +227,30 @@ def test_the_speed_section_reports_each_figure_with_its_target_and_floors():
     assert "| step, 3×3×3, median / max (ms) | ≤ 2 / ≤ 10 |" in md
     assert "| full batch LM, 3×3×3 (ms) | ≤ 20 |" in md
     assert "step, 5×5×5" in md and "corner factor (Python)" in md
+
+
+def test_the_scaling_study_takes_each_step_as_a_run_does(monkeypatch):
+    """Each module's round is solved with its tags held for the verdict and released after it, as
+    `procedures/borg_measure.py` does: the study times the step the runs pay, not a bare update."""
+    from estimation.sf_graphslam import SfGraphSlam
+    from lab.studies import bench_scaling
+
+    snapshots, released = [], []
+    update, release = SfGraphSlam.update, SfGraphSlam.release
+
+    def spy_update(self, snapshot=(), hold=False):
+        snapshots.append((tuple(snapshot), hold))
+        return update(self, snapshot, hold)
+
+    def spy_release(self, tags):
+        released.append(tuple(tags))
+        assert set(tags) <= self.held
+        return release(self, tags)
+
+    monkeypatch.setattr(SfGraphSlam, "update", spy_update)
+    monkeypatch.setattr(SfGraphSlam, "release", spy_release)
+    row = bench_scaling.measure(3, "corner-info", 0)
+    model = build_borg(3)
+    held = [(tuple(m.tags), True) for m in model.modules]
+    assert [s for s in snapshots if s[1]] == held and released == [m for m, _ in held]
+    assert row["step_median_ms"] > 0
