@@ -24,7 +24,7 @@ import math
 import time
 from dataclasses import replace
 from functools import cached_property
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -952,34 +952,11 @@ class BorgProcedure:
     def restore(self, state: dict[str, Any], steps_done: list[StepSpec], run: RunContext) -> None:
         """Replay the completed steps' views into a fresh estimator, step by step as they happened,
         so the estimate (and every later verdict) is the one an uninterrupted run would have."""
-        from procedures.borg_measure import Measurement
-        from procedures.rig_survey import views_from_json
-
-        if state.get("rig_survey_views") is not None:
-            self.rig_survey_views = state["rig_survey_views"]
-            self._solve_rig_survey(views_from_json(self.rig_survey_views))
-            self.rig_survey_result = state.get("rig_survey")
-        self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self._rig_model(),
-                                   calibration=self.rig_calibration)
-        self.measure.tolerances = self.tolerances
         self.views_done = list(state.get("views", []))
         self._true_cameras, self._corner_sq = [], []
         for v in self.views_done:
             self._take_truth(v)
-        by_round: dict[tuple[int, int, int], list[dict]] = {}
-        for v in self.views_done:
-            by_round.setdefault((v["step"], v["attempt"], v.get("round", 0)), []).append(v)
-        rounds = sorted(by_round)
-        for i, (step, attempt, rnd) in enumerate(rounds):
-            views = by_round[(step, attempt, rnd)]
-            if attempt > 1 and rnd == 0:
-                self.measure.redeploy(views[0]["module"])
-            self.measure.add_step(views[0]["module"], views)
-            if i + 1 == len(rounds) or rounds[i + 1][:2] != (step, attempt):
-                # as the live run did once the step's verdict was final (a step cut off mid-way is
-                # re-run from its start, so every replayed step was finished)
-                self.measure.verdict(views[0]["module"])
-                self.measure.finish(views[0]["module"])
+        self.replay_estimator(state)
         self.results = {k: self._restored_result(k, v) for k, v in state.get("results", {}).items()}
         if self.bench.simulated:
             for name in state.get("placed", []):
@@ -988,6 +965,39 @@ class BorgProcedure:
                 if r.attempts > 1 and r.verdict != FLAGGED:
                     self._redeploy_in_world(name)
         self.homed = False   # a new session: home again before moving
+
+    def replay_estimator(self, state: dict[str, Any], timed: Callable[[str, Callable[[], Any]], Any] | None = None,
+                         rounds: int | None = None) -> None:
+        """A fresh estimator given a checkpoint's inputs as the run gave them: the rig survey's views
+        solved again, then each round's views, each module's verdict once its last round is in, and
+        its release.  `timed(part, call)` runs each part ("survey", "step", "verdict", "release"):
+        `lab bench replay` times them; `rounds` stops after that many (a replay's first part)."""
+        from procedures.borg_measure import Measurement
+        from procedures.rig_survey import views_from_json
+
+        timed = timed or (lambda _part, call: call())
+        if state.get("rig_survey_views") is not None:
+            self.rig_survey_views = state["rig_survey_views"]
+            timed("survey", lambda: self._solve_rig_survey(views_from_json(self.rig_survey_views)))
+            self.rig_survey_result = state.get("rig_survey")
+        self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self._rig_model(),
+                                   calibration=self.rig_calibration)
+        self.measure.tolerances = self.tolerances
+        by_round: dict[tuple[int, int, int], list[dict]] = {}
+        for v in state.get("views", []):
+            by_round.setdefault((v["step"], v["attempt"], v.get("round", 0)), []).append(v)
+        order = sorted(by_round)
+        for i, (step, attempt, rnd) in enumerate(order[:rounds]):
+            views = by_round[(step, attempt, rnd)]
+            module = views[0]["module"]
+            if attempt > 1 and rnd == 0:
+                self.measure.redeploy(module)
+            timed("step", lambda: self.measure.add_step(module, views))
+            if i + 1 == len(order) or order[i + 1][:2] != (step, attempt):
+                # as the live run did once the step's verdict was final (a step cut off mid-way is
+                # re-run from its start, so every replayed step was finished)
+                timed("verdict", lambda: self.measure.verdict(module))
+                timed("release", lambda: self.measure.finish(module))
 
     def _restored_result(self, name: str, d: dict[str, Any]) -> Verdict:
         """A completed step's verdict from the checkpoint, with this run's tolerance for its type (a

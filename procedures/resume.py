@@ -104,8 +104,9 @@ def _read_json(path: Path) -> Any:
         raise UserError(f"{path}: cannot read it: {exc.strerror or exc}") from None
 
 
-def load_run(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(run.json info, checkpoint) of an interrupted run, checked; a one-line UserError otherwise."""
+def load_run(run_dir: Path, completed: bool = False) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(run.json info, checkpoint) of an interrupted run (or, with `completed`, of any run: `lab
+    bench replay` reads finished ones), checked; a one-line UserError otherwise."""
     if not run_dir.is_dir():
         raise UserError(f"{run_dir}: no such run directory")
     info_path, ckpt_path = run_dir / RUN_INFO, run_dir / CHECKPOINT
@@ -139,7 +140,7 @@ def load_run(run_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
             summary = json.loads(summary_path.read_text())
         except (ValueError, OSError):
             summary = {}   # a torn summary says nothing; the checkpoint and the logs decide
-        if isinstance(summary, dict) and summary.get("result") == "completed":
+        if isinstance(summary, dict) and summary.get("result") == "completed" and not completed:
             raise UserError(f"{run_dir}: the run completed; nothing to resume")
     return info, ckpt
 

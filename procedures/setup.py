@@ -145,10 +145,14 @@ def min_speedup(rig: Rig) -> SlowestSpeedup:
 
 
 def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *, simulate: bool | None = None,
-               speedup: float | None = None, only: list[str] | None = None, borg_n: int | None = None) -> Bench:
+               speedup: float | None = None, only: list[str] | None = None, borg_n: int | None = None,
+               offline: bool = False) -> Bench:
     """Load the rig and scenario; start the simulated bench if the rig has a [sim] table (or
     `simulate` says so), with the BORG of size `borg_n` on its turntable (default the rig's [sim]
-    borg_n: the simulation is of the run's structure); connect drivers to the served URLs."""
+    borg_n: the simulation is of the run's structure); connect drivers to the served URLs.
+    `offline`: no simulator and no device claimed, the drivers opened for what they know without
+    their device (nothing is sent until a request: the camera's calibration file), for reading a
+    run again (`lab bench replay`) beside a bench that is in use."""
     from drivers.devices import connect
 
     rig = load_rig(rig_path)
@@ -159,6 +163,9 @@ def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *,
     # the Stewart base stands at the station that clears this BORG's turntable (docs/hardware.md)
     rig = rig.for_borg(borg_n if borg_n is not None else rig.sim.borg_n if rig.sim is not None else 3)
     bench = Bench(rig, scenario)
+    if offline:
+        bench.devices = connect(rig, bench.relay, only=only, claim=False)
+        return bench
     use_sim = rig.sim is not None if simulate is None else simulate
     if use_sim:
         from sim_devices.bench import start_sim_bench
@@ -172,3 +179,14 @@ def open_bench(rig_path: str | Path | None, scenario_path: str | Path | None, *,
         bench.close()
         raise
     return bench
+
+
+def check_borg_n(n: int | None) -> int | None:
+    """`--n`, refused before a simulated bench is built for it."""
+    from lab.core.structures.borg import MAX_N
+
+    if n is not None and not 2 <= n <= MAX_N:
+        from lab.core.errors import UserError
+
+        raise UserError(f"--n {n}: the BORG size must be an integer from 2 to {MAX_N}")
+    return n

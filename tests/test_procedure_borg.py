@@ -245,3 +245,43 @@ def test_a_rig_with_errors_trusted_as_exact_flags_good_modules(lab, tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     calibrated = {m["name"]: m["verdict"] for m in _summary(tmp_path / "calibrated")["modules"]}
     assert set(calibrated.values()) == {"ok"}, calibrated
+
+
+def test_a_replay_of_a_finished_run_gives_its_verdicts_and_times_each_part(lab, faulted_run, tmp_path):
+    """`lab bench replay`: the run's estimator again from its checkpoint, offline (no device is
+    claimed), every verdict the run's, and each round's CPU by part."""
+    out, r = faulted_run(EARLY)
+    assert r.returncode == 0, r.stdout + r.stderr
+    res = lab(["bench", "replay", str(out), "--json"])
+    assert res.returncode == 0, res.stdout + res.stderr
+    data = json.loads(res.stdout)
+    s = _summary(out)
+    c = data["against_summary"]
+    assert c["compared"] == c["in_summary"] == EARLY.modules and c["verdicts_differ"] == []
+    assert c["max_deviation_diff"] < 1e-12 and c["max_sigma_rel_diff"] < 1e-9
+    assert data["rounds"] == data["rounds_in_run"] >= EARLY.modules
+    assert [row["module"] for row in data["per_round"]][0] == s["modules"][0]["name"]
+    assert all(row["step"] > 0 and row.get("step.update", 0) <= row["step"] for row in data["per_round"])
+    assert data["survey_s"] > 0
+    md = lab(["bench", "replay", str(out), "--rounds", "2"])
+    assert md.returncode == 0 and "2 of " in md.stdout and "verdicts the same" in md.stdout
+    # bad input: one line, exit 2
+    for args, said in ((["bench", "replay", str(tmp_path / "nope")], "no such run directory"),
+                       (["bench", "replay", str(out), "--rounds", "0"], "--rounds must be at least 1")):
+        bad = lab(args)
+        assert bad.returncode == 2 and said in bad.stderr and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+
+
+def test_an_offline_procedure_starts_no_simulator_and_claims_no_device():
+    """What `lab bench replay` builds: the run's procedure with its rig and camera calibration, and
+    nothing that could move or hold a device a live run needs."""
+    from drivers.ownership import held_keys
+    from procedures.build import build_procedure
+
+    before = held_keys()
+    proc, bench, structure = build_procedure("borg", {"n": 3, "speedup": 100.0}, offline=True)
+    try:
+        assert bench.sim is None and not bench.simulated and held_keys() == before
+        assert structure == "borg:3" and proc.intrinsics is not None
+    finally:
+        bench.close()

@@ -64,10 +64,10 @@ def test_mle_beats_open_loop_on_the_same_seed(lab, tmp_path):
 
 
 def test_dry_run_moves_nothing(tmp_path):
-    from lab.cli.run import _build
+    from procedures.build import build_procedure
     from procedures import runner
 
-    proc, bench, _ = _build("truss", {"name": "tetrahelix:6", "estimator": "mle"})
+    proc, bench, _ = build_procedure("truss", {"name": "tetrahelix:6", "estimator": "mle"})
     try:
         before = {n: a.extension_m() for n, a in bench.sim.world.ipjrs.items()}
         assert runner.dry_run(proc) == 0

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 
-from lab.cli.run import _build
+from procedures.build import build_procedure
 from lab.core.recorder import RunRecorder
 from procedures import runner
 from procedures.survey import SurveyPlan, View
@@ -15,7 +15,7 @@ from procedures.survey import SurveyPlan, View
 def _run_with_plan_for_2d(tmp_path, plan_of):
     """A run of the 3x3x3's first two modules in which 2D's plan is `plan_of(proc, tags)`, each view
     "planned" to show both its tags; the procedure and 2D's tags, once the run has completed."""
-    proc, bench, _ = _build("borg", {"n": 3, "modules": 2, "no_rig_survey": True, "speedup": 100.0})
+    proc, bench, _ = build_procedure("borg", {"n": 3, "modules": 2, "no_rig_survey": True, "speedup": 100.0})
     try:
         tags = proc.model.module_by_name["2D"].tags
         views = plan_of(proc, tags)

@@ -103,9 +103,9 @@ def test_a_plan_a_short_deployable_crosses_is_made_again_before_its_views_are_ta
     frames of the new plan show the tag, the old plan's do not); a run with 70D deployed keeps
     its plan."""
     from estimation.semantics import DeployCheck
-    from lab.cli.run import _build
+    from procedures.build import build_procedure
 
-    proc, bench, _ = _build("borg", {"n": 4, "modules": 105, "no_rig_survey": True, "speedup": 100.0})
+    proc, bench, _ = build_procedure("borg", {"n": 4, "modules": 105, "no_rig_survey": True, "speedup": 100.0})
     try:
         names = [m.name for m in proc.modules]
         proc.measure.placed = names[:104]

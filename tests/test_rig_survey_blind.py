@@ -4,7 +4,7 @@ stopped on an indeterminate system at module 90)."""
 
 from __future__ import annotations
 
-from lab.cli.run import _build
+from procedures.build import build_procedure
 from lab.core.recorder import RunRecorder
 from procedures import rig_survey, runner
 
@@ -17,7 +17,7 @@ def test_a_run_whose_survey_sees_no_rim_tag_stops_naming_the_camera(tmp_path, mo
         return [rig_survey.CalibrationView(v.motion, ()) for v in real(*a, **k)]
 
     monkeypatch.setattr(rig_survey, "capture", blind)
-    proc, bench, _ = _build("borg", {"n": 3, "modules": 1, "speedup": 100.0})
+    proc, bench, _ = build_procedure("borg", {"n": 3, "modules": 1, "speedup": 100.0})
     try:
         assert proc.rig_survey
         outcome = runner.run(proc, tmp_path / "r", info={}, operator_auto=True, show_progress=False,

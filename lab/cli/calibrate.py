@@ -295,7 +295,7 @@ def _rig(args: argparse.Namespace) -> int:
         check_output_dir(run_dir, "--run-dir" if args.run_dir else "the run directory (--run-dir)")
         if (run_dir / runner.RUN_FILE).exists():
             raise UserError(f"--run-dir {run_dir} already holds a run; choose another")
-    from lab.cli.run import check_borg_n
+    from procedures.setup import check_borg_n
 
     n = check_borg_n(args.n)
     bench = open_bench(args.rig, args.scenario, speedup=args.speedup, only=None, borg_n=n)

@@ -11,17 +11,6 @@ from typing import Any
 from lab.core.survey_budget import MAX_VIEWS, MAX_VIEWS_RANGE, SIGMA_TARGET_MM, SIGMA_TARGET_MM_MAX
 
 
-
-def check_borg_n(n: int | None) -> int | None:
-    """`--n`, refused before a simulated bench is built for it."""
-    from lab.core.structures.borg import MAX_N
-
-    if n is not None and not 2 <= n <= MAX_N:
-        from lab.core.errors import UserError
-
-        raise UserError(f"--n {n}: the BORG size must be an integer from 2 to {MAX_N}")
-    return n
-
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run an assembly procedure (simulated devices with the default rig)")
     rsub = p.add_subparsers(dest="procedure", metavar="PROCEDURE")
@@ -134,34 +123,6 @@ def _run_truss(args: argparse.Namespace) -> int:
     return _execute("truss", _params(args))
 
 
-def _build(procedure: str, params: dict[str, Any]):
-    """(procedure object, bench, structure name) from the CLI parameters."""
-    from procedures.setup import open_bench
-
-    n = check_borg_n(params.get("n")) if procedure == "borg" else None
-    bench = open_bench(params.get("rig"), params.get("scenario"), speedup=params.get("speedup"), borg_n=n)
-    try:
-        if procedure == "truss":
-            from procedures.truss import TrussProcedure
-
-            proc = TrussProcedure(bench, params["name"], params.get("estimator", "mle"), params.get("plan"),
-                                  params.get("plan_seed", 0))
-            return proc, bench, params["name"]
-        from procedures.borg import BorgProcedure
-
-        proc = BorgProcedure(bench, on_flag=params.get("on_flag", "stop"), n=params.get("n"),
-                             max_modules=params.get("modules"), calibration=params.get("calibration"),
-                             rig_survey=False if params.get("no_rig_survey") else None,
-                             observation=params.get("observation"), uncalibrated=bool(params.get("uncalibrated")),
-                             tolerances=params.get("tolerance"), sigma_target_mm=params.get("sigma_target_mm"),
-                             max_views=params.get("max_views"),
-                             allow_unobservable=bool(params.get("allow_unobservable")))
-        return proc, bench, f"borg:{proc.model.n}"
-    except BaseException:
-        bench.close()
-        raise
-
-
 def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = None) -> int:
     """A new run (resume_dir None) or a resume.  Everything that can refuse — the run directory,
     its lock, run.json and checkpoint.json, the logs against the checkpoint, the devices' owners —
@@ -173,6 +134,7 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
     from procedures.console import Console, ConsoleRecorder
     from procedures import resume as rs
     from procedures import runner
+    from procedures.build import build_procedure
 
     dry = bool(params.get("dry_run"))
     if params.get("view") not in (None, "auto") and not dry:
@@ -189,7 +151,7 @@ def _execute(procedure: str, params: dict[str, Any], resume_dir: Path | None = N
         resume_state = None
         if resume_dir is not None:
             _, resume_state = rs.load_run(resume_dir)
-        proc, bench, structure = _build(procedure, params)
+        proc, bench, structure = build_procedure(procedure, params)
         if dry:
             try:
                 return runner.dry_run(proc)

@@ -1,0 +1,231 @@
+"""`lab bench replay RUN_DIR`: a BORG run's estimator run again from the run's own inputs, timed
+part by part, and its verdicts checked against the run's.
+
+A run's checkpoint keeps every input its estimator was given (the rig survey's views, each round's
+detections with the camera pose the rig reported) so that `lab resume` can rebuild the estimate
+exactly.  This replays them through the same path (`BorgProcedure.replay_estimator`, on the run's
+procedure built from its run.json as `lab run` built it, offline: no device is claimed or sent a
+byte) with this checkout's code, and reports:
+
+- the CPU time of this process (not wall time: a replay beside other jobs still reads the work it
+  did) of each round's step (the round's solve: its views' factors, iSAM2, the module's
+  marginals), each module's verdict and its release (its relations tied once the verdict is
+  final): totals, per-round median / p90 / max, the step by quarter of the run and the worst
+  rounds; and inside them iSAM2's updates, its marginals and its estimate;
+- every module's verdict, deviation and 1-sigma against the run's summary.json.
+
+So a change to the estimator is measured on the very run that showed the problem (an N = 9 run
+whose verdict marginals took 19 s), paired against the code before it (the same command on the
+older commit), and a change that claims to be exact shows every verdict equal.  Left out: the
+device moves and the camera (the detections are the run's, not detected again), the logging and
+the checkpoints, the plan's accuracy pass; a run that was resumed replays as one run."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+PARTS = ("step", "verdict", "release")
+INNER = ("update", "marginals", "estimate")
+WORST = 8
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a BORG run's directory (finished, or stopped with a checkpoint)")
+    p.add_argument("--rounds", type=int, default=None, metavar="K", help="replay only the first K rounds")
+    p.add_argument("--json", action="store_true", help="print the figures (and every round's) as JSON")
+
+
+@dataclass
+class _Clock:
+    """CPU seconds by (part, what) for the round being replayed."""
+
+    part: str = ""
+    rounds: list[dict[str, Any]] = field(default_factory=list)   # per round; "module" its module
+
+    def add(self, what: str, seconds: float) -> None:
+        row = self.rounds[-1]
+        key = f"{self.part}.{what}" if self.part else what
+        row[key] = row.get(key, 0.0) + seconds
+
+
+class _TimedISAM2:
+    """The estimator's iSAM2, its calls timed into the clock: where a part's CPU goes."""
+
+    def __init__(self, isam: Any, clock: _Clock) -> None:
+        self._isam = isam
+        self._clock = clock
+
+    def _timed(self, what: str, call: Callable[[], Any]) -> Any:
+        t0 = time.process_time()
+        try:
+            return call()
+        finally:
+            self._clock.add(what, time.process_time() - t0)
+
+    def update(self, *args: Any, **kwargs: Any) -> Any:
+        result = self._timed("update", lambda: self._isam.update(*args, **kwargs))
+        self._clock.add("reeliminated", float(result.getVariablesReeliminated()))
+        return result
+
+    def marginalCovariance(self, key: int) -> Any:  # noqa: N802 (GTSAM's name)
+        return self._timed("marginals", lambda: self._isam.marginalCovariance(key))
+
+    def jointMarginalCovariance(self, keys: Any) -> Any:  # noqa: N802
+        return self._timed("marginals", lambda: self._isam.jointMarginalCovariance(keys))
+
+    def calculateEstimate(self) -> Any:  # noqa: N802
+        return self._timed("estimate", lambda: self._isam.calculateEstimate())
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._isam, name)
+
+
+def replay(run_dir: Path, rounds: int | None = None) -> dict[str, Any]:
+    """Replay the run in `run_dir` (its first `rounds` rounds); the figures `to_markdown` prints."""
+    from lab.core.errors import UserError
+    from procedures.resume import load_run
+    from procedures.build import build_procedure
+
+    info, ckpt = load_run(run_dir, completed=True)
+    if info["procedure"] != "borg":
+        raise UserError(f"{run_dir}: a {info['procedure']} run; `lab bench replay` replays BORG runs")
+    state = ckpt.get("state") or {}
+    views = state.get("views") or []
+    if not views:
+        raise UserError(f"{run_dir / 'checkpoint.json'}: no view of a module was taken; nothing to replay")
+    if rounds is not None and rounds < 1:
+        raise UserError(f"--rounds must be at least 1, got {rounds}")
+    summary_path = run_dir / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    proc, bench, structure = build_procedure("borg", info["params"], offline=True)
+    clock = _Clock()
+    verdicts: dict[str, Any] = {}
+    survey_s = 0.0
+
+    def timed(part: str, call: Callable[[], Any]) -> Any:
+        nonlocal survey_s
+        t0 = time.process_time()
+        if part == "survey":
+            result = call()
+            survey_s += time.process_time() - t0
+            return result
+        slam = proc.measure.slam
+        if not isinstance(slam.isam, _TimedISAM2):
+            slam.isam = _TimedISAM2(slam.isam, clock)
+        if part == "step":
+            clock.rounds.append({})
+        clock.part = part
+        try:
+            result = call()
+        finally:
+            clock.part = ""
+            clock.add(part, time.process_time() - t0)
+        if part == "verdict":
+            verdicts[result.module] = result
+        return result
+
+    try:
+        modules = _round_modules(state)
+        proc.replay_estimator(state, timed, rounds=rounds)
+    finally:
+        bench.close()
+    for row, module in zip(clock.rounds, modules):
+        row["module"] = module
+    cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    return {"run_dir": str(run_dir), "structure": structure, "rounds": len(clock.rounds), "rounds_in_run": len(modules),
+            "modules": len({r["module"] for r in clock.rounds}), "survey_s": survey_s, "cpu_s": cpu, "wall_s": wall,
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+            "per_round": clock.rounds, "against_summary": compare(verdicts, summary.get("modules", []))}
+
+
+def _round_modules(state: dict[str, Any]) -> list[str]:
+    """Each round's module, in the order the replay takes the rounds (`replay_estimator`)."""
+    first: dict[tuple[int, int, int], str] = {}
+    for v in state.get("views", []):
+        first.setdefault((v["step"], v["attempt"], v.get("round", 0)), v["module"])
+    return [first[k] for k in sorted(first)]
+
+
+def compare(verdicts: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The replayed verdicts against the run's summary rows: how many equal, the largest deviation
+    difference (m) and the largest relative 1-sigma difference, and the modules that differ."""
+    by_name = {r["name"]: r for r in rows}
+    differ, dev, sig, compared = [], 0.0, 0.0, 0
+    for name, v in verdicts.items():
+        r = by_name.get(name)
+        if r is None:
+            continue
+        compared += 1
+        if v.verdict != r["verdict"]:
+            differ.append({"module": name, "run": r["verdict"], "replay": v.verdict})
+        for mine, theirs in ((v.deviation_m, r.get("deviation_m")), (v.deviation_rad, r.get("deviation_rad"))):
+            if mine is not None and theirs is not None:
+                dev = max(dev, abs(mine - theirs))
+        if v.sigma_m is not None and r.get("sigma_position_m"):
+            sig = max(sig, abs(v.sigma_m - r["sigma_position_m"]) / r["sigma_position_m"])
+    return {"compared": compared, "in_summary": len(rows), "verdicts_differ": differ,
+            "max_deviation_diff": dev, "max_sigma_rel_diff": sig}
+
+
+def _ms(xs: list[float]) -> str:
+    if not xs:
+        return "–"
+    a = np.asarray(xs) * 1e3
+    return f"{np.median(a):.0f} / {np.percentile(a, 90):.0f} / {a.max():.0f}"
+
+
+def to_markdown(res: dict[str, Any], command: str) -> list[str]:
+    rows = res["per_round"]
+    total = {k: sum(r.get(k, 0.0) for r in rows) for k in {k for r in rows for k in r if k != "module"}}
+    lines = [f"Command: `{command}` — {res['rounds']} of {res['rounds_in_run']} rounds ({res['modules']} modules) of "
+             f"{res['structure']}, replayed in {res['wall_s']:.0f} s ({res['cpu_s']:.0f} s CPU, the procedure's "
+             f"plans and the survey's solve ({res['survey_s']:.1f} s) included); peak memory "
+             f"{res['peak_rss_mb']:.0f} MB.", "",
+             "| part | CPU total (s) | per round median / p90 / max (ms) | of it iSAM2 updates (s) | marginals (s) | "
+             "estimate (s) | variables re-eliminated |", "|---|---|---|---|---|---|---|"]
+    for part in PARTS:
+        per = [r.get(part, 0.0) for r in rows if part in r]
+        inner = [f"{total.get(f'{part}.{w}', 0.0):.2f}" for w in INNER]
+        lines.append(f"| {part} | {total.get(part, 0.0):.2f} | {_ms(per)} | {' | '.join(inner)} | "
+                     f"{int(total.get(f'{part}.reeliminated', 0)):,} |")
+    steps = [r.get("step", 0.0) for r in rows]
+    q = max(len(steps) // 4, 1)
+    quarters = [np.median(steps[i * q:(i + 1) * q]) * 1e3 for i in range(4) if steps[i * q:(i + 1) * q]]
+    lines += ["", "Step CPU median by quarter of the run: " + " / ".join(f"{x:.0f}" for x in quarters) + " ms.", "",
+              "Worst rounds (step + verdict + release):", "",
+              "| round | module | step (ms) | of it marginals (ms) | verdict (ms) | release (ms) |", "|---|---|---|---|---|---|"]
+    cost = [r.get("step", 0.0) + r.get("verdict", 0.0) + r.get("release", 0.0) for r in rows]
+    for i in sorted(range(len(rows)), key=lambda i: -cost[i])[:WORST]:
+        r = rows[i]
+        lines.append(f"| {i} | {r['module']} | {r.get('step', 0.0) * 1e3:.0f} | {r.get('step.marginals', 0.0) * 1e3:.0f} | "
+                     f"{r.get('verdict', 0.0) * 1e3:.0f} | {r.get('release', 0.0) * 1e3:.0f} |")
+    c = res["against_summary"]
+    same = c["compared"] - len(c["verdicts_differ"])
+    lines += ["", f"Against the run's summary: {same} of {c['compared']} verdicts the same "
+                  f"({c['in_summary']} modules in it); deviations within {c['max_deviation_diff']:.1e}, "
+                  f"1σ within {c['max_sigma_rel_diff']:.1e} relative."]
+    for d in c["verdicts_differ"]:
+        lines.append(f"- {d['module']}: the run said {d['run']}, the replay {d['replay']}")
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
+    import shlex
+    import sys
+
+    res = replay(Path(args.run_dir), args.rounds)
+    if args.json:
+        print(json.dumps(res, default=float))
+    else:
+        command = "lab bench replay " + " ".join(shlex.quote(a) for a in sys.argv[3:])
+        print("\n".join(to_markdown(res, command)))
+    return 0
