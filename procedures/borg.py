@@ -139,6 +139,7 @@ class BorgProcedure:
         self._tag_scale_given = "tag_scale_sigma" in estimator_config
         estimator_config.setdefault("corner_sigma_px", ver.corner_sigma_px)
         estimator_config.setdefault("tag_scale_sigma", ver.tag_scale_sigma)
+        estimator_config.setdefault("near_tags_per_view", ver.near_tags_per_view)
         corner_sigma = float(estimator_config["corner_sigma_px"])
         self.precision = PrecisionTarget(sigma_m=sigma_target_mm * 1e-3 if sigma_target_mm is not None else ver.sigma_target_m,
                                          max_views=max_views if max_views is not None else ver.max_views,
@@ -1024,6 +1025,10 @@ class BorgProcedure:
                 "corner_rms_px": float(np.sqrt(np.mean(self._corner_sq))) if self._corner_sq else None,
                 # the corner noise the run's own residuals imply, and what the graph assumed
                 "corner_noise": noise.to_json() if (noise := self.measure.slam.corner_noise()) is not None else None,
+                # what the graph took of the views' sightings (Measurement.near_sightings); a
+                # resumed run counts those it replayed too
+                "sightings": {"near_tags_per_view": self.measure.near_tags_per_view, "in_graph": self.measure.sightings[0],
+                              "detected": self.measure.sightings[1]},
                 "rig_calibration_file": str(self.bench.rig.calibration.file) if self.bench.rig.calibration.file else None}
 
     def stop_devices(self) -> list[str]:

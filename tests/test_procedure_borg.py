@@ -263,6 +263,10 @@ def test_a_replay_of_a_finished_run_gives_its_verdicts_and_times_each_part(lab, 
     assert [row["module"] for row in data["per_round"]][0] == s["modules"][0]["name"]
     assert all(row["step"] > 0 and row.get("step.update", 0) <= row["step"] for row in data["per_round"])
     assert data["survey_s"] > 0
+    # the run put in its graph only the sightings near each module, and the replay the same ones
+    seen = s["sightings"]
+    assert seen["near_tags_per_view"] == data["near_tags_per_view"] == 5 and 0 < seen["in_graph"] <= seen["detected"]
+    assert (data["sightings_in_graph"], data["sightings"]) == (seen["in_graph"], seen["detected"])
     md = lab(["bench", "replay", str(out), "--rounds", "2"])
     assert md.returncode == 0 and "2 of " in md.stdout and "verdicts the same" in md.stdout
     # bad input: one line, exit 2

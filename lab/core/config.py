@@ -213,6 +213,12 @@ class VerificationConfig:
     # graph gives every tag a scale variable with this prior (measure a few printed tags with a
     # caliper; 0 = printed exactly)
     tag_scale_sigma: float = 0.001
+    # besides the module's own tags, a view gives the graph its sightings of this many tags, those
+    # nearest the module (design positions): a view of a large structure reads ~17 tags all over
+    # it, which tell the module little (its neighbours and the rig chain place the camera) and each
+    # re-eliminates its far corner of the Bayes tree (docs/sf_graphslam.md, "What a view gives the
+    # graph"); 0 = every sighting
+    near_tags_per_view: int = 5
 
 
 def _verification(t: "_Table") -> VerificationConfig:
@@ -229,7 +235,8 @@ def _verification(t: "_Table") -> VerificationConfig:
                              t.integer("max_views", default=MAX_VIEWS, minimum=MAX_VIEWS_RANGE[0],
                                        maximum=MAX_VIEWS_RANGE[1]),
                              t.number("corner_sigma_px", default=0.02, positive=True, maximum=5.0),
-                             t.number("tag_scale_percent", default=0.1, minimum=0.0, maximum=5.0) * 1e-2)
+                             t.number("tag_scale_percent", default=0.1, minimum=0.0, maximum=5.0) * 1e-2,
+                             t.integer("near_tags_per_view", default=5, minimum=0, maximum=10000))
     t.done()
     return cfg
 

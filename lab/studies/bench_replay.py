@@ -40,6 +40,9 @@ WORST = 8
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", metavar="RUN_DIR", help="a BORG run's directory (finished, or stopped with a checkpoint)")
     p.add_argument("--rounds", type=int, default=None, metavar="K", help="replay only the first K rounds")
+    p.add_argument("--near-tags-per-view", type=int, default=None, metavar="K",
+                   help="besides the module's own tags, put in the graph each view's sightings of the K tags nearest "
+                        "the module (0: every sighting; default: the run's own, from its summary)")
     p.add_argument("--json", action="store_true", help="print the figures (and every round's) as JSON")
 
 
@@ -88,8 +91,9 @@ class _TimedISAM2:
         return getattr(self._isam, name)
 
 
-def replay(run_dir: Path, rounds: int | None = None) -> dict[str, Any]:
-    """Replay the run in `run_dir` (its first `rounds` rounds); the figures `to_markdown` prints."""
+def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | None = None) -> dict[str, Any]:
+    """Replay the run in `run_dir` (its first `rounds` rounds; with the estimator's
+    `near_tags_per_view`, default the run's); the figures `to_markdown` prints."""
     from lab.core.errors import UserError
     from procedures.resume import load_run
     from procedures.build import build_procedure
@@ -103,10 +107,17 @@ def replay(run_dir: Path, rounds: int | None = None) -> dict[str, Any]:
         raise UserError(f"{run_dir / 'checkpoint.json'}: no view of a module was taken; nothing to replay")
     if rounds is not None and rounds < 1:
         raise UserError(f"--rounds must be at least 1, got {rounds}")
+    if near_tags_per_view is not None and near_tags_per_view < 0:
+        raise UserError(f"--near-tags-per-view must be 0 (every sighting) or more, got {near_tags_per_view}")
     summary_path = run_dir / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     wall0, cpu0 = time.perf_counter(), time.process_time()
     proc, bench, structure = build_procedure("borg", info["params"], offline=True)
+    if near_tags_per_view is None:
+        # as the run did: a run from before the count existed (no `sightings` in its summary) put
+        # every sighting in the graph
+        near_tags_per_view = int((summary.get("sightings") or {}).get("near_tags_per_view", 0))
+    proc.measure.config["near_tags_per_view"] = near_tags_per_view
     clock = _Clock()
     verdicts: dict[str, Any] = {}
     survey_s = 0.0
@@ -144,6 +155,8 @@ def replay(run_dir: Path, rounds: int | None = None) -> dict[str, Any]:
     return {"run_dir": str(run_dir), "structure": structure, "rounds": len(clock.rounds), "rounds_in_run": len(modules),
             "modules": len({r["module"] for r in clock.rounds}), "survey_s": survey_s, "cpu_s": cpu, "wall_s": wall,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+            "near_tags_per_view": proc.measure.near_tags_per_view, "sightings_in_graph": proc.measure.sightings[0],
+            "sightings": proc.measure.sightings[1],
             "per_round": clock.rounds, "against_summary": compare(verdicts, summary.get("modules", []))}
 
 
@@ -176,6 +189,10 @@ def compare(verdicts: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, A
             "max_deviation_diff": dev, "max_sigma_rel_diff": sig}
 
 
+def _near(k: int) -> str:
+    return "every sighting" if k <= 0 else f"the module's own tags' and each view's {k} other tags nearest it"
+
+
 def _ms(xs: list[float]) -> str:
     if not xs:
         return "–"
@@ -189,7 +206,8 @@ def to_markdown(res: dict[str, Any], command: str) -> list[str]:
     lines = [f"Command: `{command}` — {res['rounds']} of {res['rounds_in_run']} rounds ({res['modules']} modules) of "
              f"{res['structure']}, replayed in {res['wall_s']:.0f} s ({res['cpu_s']:.0f} s CPU, the procedure's "
              f"plans and the survey's solve ({res['survey_s']:.1f} s) included); peak memory "
-             f"{res['peak_rss_mb']:.0f} MB.", "",
+             f"{res['peak_rss_mb']:.0f} MB.  Sightings in the graph: {res['sightings_in_graph']:,} of "
+             f"{res['sightings']:,} ({_near(res['near_tags_per_view'])}).", "",
              "| part | CPU total (s) | per round median / p90 / max (ms) | of it iSAM2 updates (s) | marginals (s) | "
              "estimate (s) | variables re-eliminated |", "|---|---|---|---|---|---|---|"]
     for part in PARTS:
@@ -222,7 +240,7 @@ def run(args: argparse.Namespace) -> int:
     import shlex
     import sys
 
-    res = replay(Path(args.run_dir), args.rounds)
+    res = replay(Path(args.run_dir), args.rounds, args.near_tags_per_view)
     if args.json:
         print(json.dumps(res, default=float))
     else:
