@@ -12,6 +12,7 @@ import numpy as np
 from estimation.fiducials import Detection, TagDetector
 from estimation.rig_model import RigGeometry, ViewMotion
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
+from estimation.sightings import near_sightings
 from lab.core.rig_calibration_file import RigCalibration
 from estimation.tag_elimination import eliminate_tags
 from estimation.verification import Tolerances, verify_module
@@ -45,7 +46,6 @@ class Measurement:
         # 0: every sighting of a view goes into the graph (`near_sightings`)
         self.near_tags_per_view = int(self.config.get("near_tags_per_view", 0))
         self.sightings = [0, 0]            # (put in the graph, detected) over the run's views
-        self._module_tags_at: dict[str, np.ndarray] = {}
         self.rejected_tags: set[int] = set()
         self.placed: list[str] = []
         self._verdicts: dict[str, Verdict] = {}
@@ -118,36 +118,9 @@ class Measurement:
                                                   motion=motion if self.rig is not None else None))
 
     def near_sightings(self, module: str, detections: list[Detection]) -> list[Detection]:
-        """The sightings a view of `module` gives the graph: its own tags', and those of the
-        `near_tags_per_view` other tags nearest its tags (design positions).  A view 2.2 m out reads
-        tags up to 4 m away, ~17 a view at N = 8, all over the structure; each sighting of a far tag
-        makes iSAM2 re-eliminate that tag's path to the root, while the module's 1-sigma comes from
-        its own tags and the camera, which its neighbours and the rig chain place.  Replayed on the
-        runs' own detections (docs/benchmarks.md): 5 cut an N = 8 run's step CPU 2.1x and kept 27 %
-        of its sightings, 10 runs at N = 3 kept ~90 %; no verdict changed in either, the 1-sigma
-        grew 0.3 % (median), 3.5 % at most.  A nearest count, not a radius: 1 m cut the N = 8 step
-        2.4x but grew some 1-sigma 26 %, and turned two N = 3 faults `uncertain`.  The run's log
-        keeps every detection: a replay can put them all back (`lab bench replay`)."""
-        k = self.near_tags_per_view
-        mod = self.model.module_by_name.get(module)
-        if k <= 0 or mod is None:
-            return detections
-        mine = set(mod.tags)
-        others = [d for d in detections if d.tag_id not in mine and d.tag_id in self.model.tags]
-        if len(others) <= k:
-            return detections
-        own = self._module_tags_at.get(module)
-        if own is None:
-            own = self._module_tags_at[module] = np.array([self.model.tags[t].structure_T_tag.translation()
-                                                           for t in mod.tags]).reshape(-1, 3)
-        gap = {}
-        for d in others:
-            delta = own - self.model.tags[d.tag_id].structure_T_tag.translation()
-            gap[d.tag_id] = float(np.min(np.einsum("ij,ij->i", delta, delta)))
-        # nearest first, the id breaking a tie: the same sightings in a replay
-        near = set(sorted(gap, key=lambda t: (gap[t], t))[:k])
-        # an unknown id stays: the estimator's own check refuses it
-        return [d for d in detections if d.tag_id in mine or d.tag_id in near or d.tag_id not in self.model.tags]
+        """The sightings a view of `module` gives the graph (`estimation.sightings.near_sightings`,
+        with the run's `near_tags_per_view`)."""
+        return near_sightings(self.model, module, detections, self.near_tags_per_view)
 
     def end_round(self, module: str) -> None:
         """The round's views solved: the module's tags measured, tags off the design rejected."""

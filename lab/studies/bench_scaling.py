@@ -6,7 +6,9 @@ the camera pose known to 0.1 mm / 0.005 deg), with semantic factors deciding as 
 decidable.  A tag a nearer tag hides is not seen (the survey planner's rule, `survey.unoccluded`;
 the rendered camera hides it by painting the nearer tag over it).  Struts hide nothing (as in the
 renderer), so a view of a larger structure reads tags further into it: 5.3 tags per view at N = 3,
-17 at N = 8 (occlusion takes 0.7 of them).  Measured per size: tags, factors, views; the step as
+17 at N = 8 (occlusion takes 0.7 of them); as in a run, the graph takes the sightings of the
+module's own tags and of the rig's `near_tags_per_view` (5) other tags nearest it
+(`estimation.sightings`).  Measured per size: tags, factors, views; the step as
 a run takes it (the round's solve with the module's tags held for its verdict, then their release
 once it is final: median, max); the marginal the verdict reads (the new module's tag, after the
 solve, per step, median); the batch Levenberg-Marquardt solve of the whole graph from its initial
@@ -56,8 +58,11 @@ class _TimedISAM2:
         return getattr(self._isam, name)
 
 
-def measure(n: int, observation: str, seed: int) -> dict:
+def measure(n: int, observation: str, seed: int, near_tags_per_view: int | None = None) -> dict:
     import gtsam
+
+    from estimation.sightings import near_sightings
+    from lab.core.config import VerificationConfig
 
     from lab.studies import slam_sim as ss
     from lab.studies.bench_precision import PrecisionSetup, _sight
@@ -66,6 +71,8 @@ def measure(n: int, observation: str, seed: int) -> dict:
     from lab.core.structures.borg import build_borg
 
     setup = PrecisionSetup()
+    # what a run's view gives the graph: the module's tags and the rig's nearest others
+    near = VerificationConfig().near_tags_per_view if near_tags_per_view is None else near_tags_per_view
     rng = np.random.default_rng([seed, n])
     model = build_borg(n)
     truth = ss.true_tag_poses(model, ss.StructureFaults(), list(model.tags))
@@ -80,12 +87,15 @@ def measure(n: int, observation: str, seed: int) -> dict:
         slam.add_view(cam, _sight(rng, ss.SIM_K, cam, cam, truth, present, model, setup, OCCLUSION))
     slam.update()
     steps, solver, marginals = [], [], []
+    read = sum(slam.observations.values())       # sightings the views read (the graph takes the near ones)
     for m in model.modules:
         present += list(m.tags)
         for cam in _cameras(model, m):
             reported = cam.compose(Pose3(Rot3.Expmap(rng.normal(0, setup.camera_sigma_rad, 3)),
                                          rng.normal(0, setup.camera_sigma_m, 3)))
-            slam.add_view(reported, _sight(rng, ss.SIM_K, cam, reported, truth, present, model, setup, OCCLUSION))
+            seen = _sight(rng, ss.SIM_K, cam, reported, truth, present, model, setup, OCCLUSION)
+            read += len(seen)
+            slam.add_view(reported, near_sightings(model, m.name, seen, near))
         # the run's step (procedures/borg_measure.py): the round's solve with the module's tags
         # held for its verdict (they end in the Bayes tree's root, and the snapshot's marginals
         # are read there), then its release once the verdict is final (its relations tied)
@@ -115,6 +125,7 @@ def measure(n: int, observation: str, seed: int) -> dict:
     return {"n": n, "observation": observation, "modules": len(model.modules), "tags": len(slam.tags),
             "factors": int(slam.graph.size()), "views": slam.n_views,
             "sightings_per_view": sum(slam.observations.values()) / max(slam.n_views, 1),
+            "read_per_view": read / max(slam.n_views, 1), "near_tags_per_view": near,
             "step_median_ms": float(np.median(steps) * 1000), "step_max_ms": float(np.max(steps) * 1000),
             # the iSAM2 update calls alone within each step (with a Python factor, its callbacks too)
             "solver_median_ms": float(np.median(solver) * 1000), "solver_max_ms": float(np.max(solver) * 1000),
@@ -145,12 +156,12 @@ def study(sizes=SIZES, observations=("corner-info", "corners"), seed: int = 0, m
 
 
 def markdown(res: dict) -> list[str]:
-    lines = ["| model | N | modules | tags | factors | views | tags per view | step median / max (ms) | "
+    lines = ["| model | N | modules | tags | factors | views | tags per view (read / in the graph) | step median / max (ms) | "
              "verdict marginal (ms) | batch LM (ms) | all marginals (ms) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for obs, rows in res["rows"].items():
         for r in rows:
             lines.append(f"| {obs} | {r['n']} | {r['modules']} | {r['tags']} | {r['factors']} | {r['views']} | "
-                         f"{r['sightings_per_view']:.1f} | {r['step_median_ms']:.1f} / {r['step_max_ms']:.0f} | {r['marginal_median_ms']:.2f} | "
+                         f"{r.get('read_per_view', r['sightings_per_view']):.1f} / {r['sightings_per_view']:.1f} | {r['step_median_ms']:.1f} / {r['step_max_ms']:.0f} | {r['marginal_median_ms']:.2f} | "
                          f"{r['batch_ms']:.0f} | {r['marginals_factorisation_ms']:.0f} |")
     lines.append("")
     for obs, g in res["growth"].items():
