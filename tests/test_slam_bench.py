@@ -222,10 +222,15 @@ def test_the_speed_section_reports_each_figure_with_its_target_and_floors():
         assert 0 < r["solver_median_ms"] <= r["step_median_ms"] and r["solver_max_ms"] <= r["step_max_ms"]
     lin = bench_scaling.linearisation_costs(repeats=40)
     assert lin["BetweenFactorPose3 (C++)"] < lin["corner factor (Python)"]
-    res = {"rows": rows + [dict(rows[1], n=5)], "large_n": 5, "linearisation_us": lin}
+    # the large size's run-model steps without its batch solve (minutes at N = 8)
+    stepped = bench_scaling.measure(3, "corners", 0, batch=False)
+    assert stepped["batch_ms"] is None and stepped["step_median_ms"] > 0
+    res = {"rows": rows + [dict(rows[1], n=5), dict(stepped, n=5)], "large_n": 5, "linearisation_us": lin}
     md = "\n".join(bench_scaling.speed_markdown(res))
     assert "| step, 3×3×3, median / max (ms) | ≤ 2 / ≤ 10 |" in md
     assert "| full batch LM, 3×3×3 (ms) | ≤ 20 |" in md
+    assert f"| step, 5×5×5, median / max (ms) | (targets at N = 3 and 8) | {stepped['step_median_ms']:.1f} /" in md
+    assert "| full batch LM, 5×5×5 (ms) | – | not run (minutes) |" in md
     assert "step, 5×5×5" in md and "corner factor (Python)" in md
 
 
