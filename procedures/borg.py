@@ -73,6 +73,15 @@ def needs_confirming(result: Verdict, target_m: float, confirms: int, confirmed_
             and (confirmed_from is None or result.sigma_m <= (1 - CONFIRM_GAIN) * confirmed_from))
 
 
+def views_by_round(views: list[dict[str, Any]]) -> list[tuple[tuple[int, int, int], list[dict[str, Any]]]]:
+    """A checkpoint's views grouped by round, ((step, attempt, round), views) in the order they were
+    taken: what a resume replays (`BorgProcedure.replay_estimator`)."""
+    by_round: dict[tuple[int, int, int], list[dict[str, Any]]] = {}
+    for v in views:
+        by_round.setdefault((v["step"], v["attempt"], v.get("round", 0)), []).append(v)
+    return sorted(by_round.items(), key=lambda kv: kv[0])
+
+
 class UnobservableModules(UserError):
     """Modules no candidate view of the rig sees: a run refuses to start (`lines` lists them)."""
 
@@ -984,17 +993,13 @@ class BorgProcedure:
         self.measure = Measurement(self.model, self.intrinsics, self.measure.config, rig=self._rig_model(),
                                    calibration=self.rig_calibration)
         self.measure.tolerances = self.tolerances
-        by_round: dict[tuple[int, int, int], list[dict]] = {}
-        for v in state.get("views", []):
-            by_round.setdefault((v["step"], v["attempt"], v.get("round", 0)), []).append(v)
-        order = sorted(by_round)
-        for i, (step, attempt, rnd) in enumerate(order[:rounds]):
-            views = by_round[(step, attempt, rnd)]
+        order = views_by_round(state.get("views", []))
+        for i, ((step, attempt, rnd), views) in enumerate(order[:rounds]):
             module = views[0]["module"]
             if attempt > 1 and rnd == 0:
                 self.measure.redeploy(module)
             timed("step", lambda: self.measure.add_step(module, views))
-            if i + 1 == len(order) or order[i + 1][:2] != (step, attempt):
+            if i + 1 == len(order) or order[i + 1][0][:2] != (step, attempt):
                 # as the live run did once the step's verdict was final (a step cut off mid-way is
                 # re-run from its start, so every replayed step was finished)
                 timed("verdict", lambda: self.measure.verdict(module))

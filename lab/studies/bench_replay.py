@@ -96,6 +96,7 @@ def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | N
     `near_tags_per_view`, default the run's); the figures `to_markdown` prints."""
     from lab.core.errors import UserError
     from procedures.resume import load_run
+    from procedures.borg import views_by_round
     from procedures.build import build_procedure
 
     info, ckpt = load_run(run_dir, completed=True)
@@ -145,7 +146,7 @@ def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | N
         return result
 
     try:
-        modules = _round_modules(state)
+        modules = [taken[0]["module"] for _, taken in views_by_round(views)]
         proc.replay_estimator(state, timed, rounds=rounds)
     finally:
         bench.close()
@@ -158,14 +159,6 @@ def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | N
             "near_tags_per_view": proc.measure.near_tags_per_view, "sightings_in_graph": proc.measure.sightings[0],
             "sightings": proc.measure.sightings[1],
             "per_round": clock.rounds, "against_summary": compare(verdicts, summary.get("modules", []))}
-
-
-def _round_modules(state: dict[str, Any]) -> list[str]:
-    """Each round's module, in the order the replay takes the rounds (`replay_estimator`)."""
-    first: dict[tuple[int, int, int], str] = {}
-    for v in state.get("views", []):
-        first.setdefault((v["step"], v["attempt"], v.get("round", 0)), v["module"])
-    return [first[k] for k in sorted(first)]
 
 
 def compare(verdicts: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, Any]:

@@ -164,7 +164,7 @@ def markdown(res: dict) -> list[str]:
     for obs, rows in res["rows"].items():
         for r in rows:
             lines.append(f"| {obs} | {r['n']} | {r['modules']} | {r['tags']} | {r['factors']} | {r['views']} | "
-                         f"{r.get('read_per_view', r['sightings_per_view']):.1f} / {r['sightings_per_view']:.1f} | {r['step_median_ms']:.1f} / {r['step_max_ms']:.0f} | {r['marginal_median_ms']:.2f} | "
+                         f"{r['read_per_view']:.1f} / {r['sightings_per_view']:.1f} | {r['step_median_ms']:.1f} / {r['step_max_ms']:.0f} | {r['marginal_median_ms']:.2f} | "
                          f"{r['batch_ms']:.0f} | {r['marginals_factorisation_ms']:.0f} |")
     lines.append("")
     for obs, g in res["growth"].items():
