@@ -262,6 +262,9 @@ def test_a_replay_of_a_finished_run_gives_its_verdicts_and_times_each_part(lab, 
     assert data["rounds"] == data["rounds_in_run"] >= EARLY.modules
     assert [row["module"] for row in data["per_round"]][0] == s["modules"][0]["name"]
     assert all(row["step"] > 0 and row.get("step.update", 0) <= row["step"] for row in data["per_round"])
+    # each step's updates re-eliminate its new variables at least; those relinearised are among them
+    assert all(0 <= row.get("step.relinearized", 0) <= row["step.reeliminated"] and row["step.reeliminated"] >= 1
+               for row in data["per_round"])
     assert data["survey_s"] > 0
     # the run put in its graph only the sightings near each module, and the replay the same ones
     seen = s["sightings"]
@@ -269,6 +272,7 @@ def test_a_replay_of_a_finished_run_gives_its_verdicts_and_times_each_part(lab, 
     assert (data["sightings_in_graph"], data["sightings"]) == (seen["in_graph"], seen["detected"])
     md = lab(["bench", "replay", str(out), "--rounds", "2"])
     assert md.returncode == 0 and "2 of " in md.stdout and "verdicts the same" in md.stdout
+    assert "re-eliminate, median by quarter" in md.stdout
     # bad input: one line, exit 2
     for args, said in ((["bench", "replay", str(tmp_path / "nope")], "no such run directory"),
                        (["bench", "replay", str(out), "--rounds", "0"], "--rounds must be at least 1")):

@@ -220,6 +220,8 @@ def test_the_speed_section_reports_each_figure_with_its_target_and_floors():
     for r in rows:
         # the iSAM2 update alone is part of the step, never more than it
         assert 0 < r["solver_median_ms"] <= r["step_median_ms"] and r["solver_max_ms"] <= r["step_max_ms"]
+        # every step re-eliminates at least its new variables, counted by quarter of the survey
+        assert len(r["reeliminated_by_quarter"]) == 4 and min(r["reeliminated_by_quarter"]) >= 1
     lin = bench_scaling.linearisation_costs(repeats=40)
     assert lin["BetweenFactorPose3 (C++)"] < lin["corner factor (Python)"]
     # the large size's run-model steps without its batch solve (minutes at N = 8)
@@ -232,6 +234,7 @@ def test_the_speed_section_reports_each_figure_with_its_target_and_floors():
     assert f"| step, 5×5×5, median / max (ms) | (targets at N = 3 and 8) | {stepped['step_median_ms']:.1f} /" in md
     assert "| full batch LM, 5×5×5 (ms) | – | not run (minutes) |" in md
     assert "step, 5×5×5" in md and "corner factor (Python)" in md
+    assert "re-eliminate, median by quarter of the survey: 3×3×3 `corners` " in md
 
 
 def test_the_scaling_study_takes_each_step_as_a_run_does(monkeypatch):

@@ -46,13 +46,16 @@ class _TimedISAM2:
     def __init__(self, isam) -> None:
         self._isam = isam
         self.seconds = 0.0
+        self.reeliminated = 0          # variables the updates re-eliminated (the tree from the touched keys up)
 
     def update(self, *args, **kwargs):
         t0 = time.perf_counter()
         try:
-            return self._isam.update(*args, **kwargs)
+            result = self._isam.update(*args, **kwargs)
         finally:
             self.seconds += time.perf_counter() - t0
+        self.reeliminated += result.getVariablesReeliminated()
+        return result
 
     def __getattr__(self, name: str):
         return getattr(self._isam, name)
@@ -88,7 +91,7 @@ def measure(n: int, observation: str, seed: int, near_tags_per_view: int | None 
         cam = ss.rig_camera(model, math.radians(90.0 * face), math.radians(-8.0))
         slam.add_view(cam, _sight(rng, ss.SIM_K, cam, cam, truth, present, model, setup, OCCLUSION))
     slam.update()
-    steps, solver, marginals = [], [], []
+    steps, solver, marginals, reeliminated = [], [], [], []
     read = sum(slam.observations.values())       # sightings the views read (the graph takes the near ones)
     for m in model.modules:
         present += list(m.tags)
@@ -102,6 +105,7 @@ def measure(n: int, observation: str, seed: int, near_tags_per_view: int | None 
         # held for its verdict (they end in the Bayes tree's root, and the snapshot's marginals
         # are read there), then its release once the verdict is final (its relations tied)
         timed.seconds = 0.0
+        timed.reeliminated = 0
         t0 = time.perf_counter()
         slam.update(snapshot=m.tags, hold=True)
         step = time.perf_counter() - t0
@@ -113,6 +117,7 @@ def measure(n: int, observation: str, seed: int, near_tags_per_view: int | None 
         slam.release(m.tags)
         steps.append(step + time.perf_counter() - t0)
         solver.append(timed.seconds)
+        reeliminated.append(timed.reeliminated)
     # the one-off solves are timed REPEATS times and the median kept: one timing of a 10 ms solve
     # on a shared machine moves a fitted exponent by a tenth
     batch_runs, marginal_runs = [], []
@@ -133,6 +138,10 @@ def measure(n: int, observation: str, seed: int, near_tags_per_view: int | None 
             # the iSAM2 update calls alone within each step (with a Python factor, its callbacks too)
             "solver_median_ms": float(np.median(solver) * 1000), "solver_max_ms": float(np.max(solver) * 1000),
             "marginal_median_ms": float(np.median(marginals) * 1000) if marginals else None,
+            # variables a step's updates re-eliminate, median over each quarter of the survey: how
+            # the step's work grows as the structure does
+            "reeliminated_by_quarter": [float(np.median(q)) for q in np.array_split(np.array(reeliminated, float), 4)
+                                        if len(q)],
             "batch_ms": batch_s, "marginals_factorisation_ms": all_marginals}
 
 
@@ -307,6 +316,9 @@ def speed_markdown(res: dict) -> list[str]:
         lines.append(f"| full batch LM, {n}×{n}×{n} (ms) | {'≤ %g' % target if target else '–'} | "
                      f"{'%.0f' % run['batch_ms'] if run and run['batch_ms'] is not None else 'not run (minutes)'} | {cpp['batch_ms']:.0f} | – | {met} |")
     lines.append("")
+    lines.append("Variables a step's updates re-eliminate, median by quarter of the survey: " + "; ".join(
+        f"{r['n']}×{r['n']}×{r['n']} `{r['observation']}` " + " / ".join(f"{x:.0f}" for x in r["reeliminated_by_quarter"])
+        for r in res["rows"] if r.get("reeliminated_by_quarter")) + ".")
     lines.append("One factor's linearisation (µs, median): " + ", ".join(
         f"{k} {v:.1f}" for k, v in res["linearisation_us"].items()) + ".")
     lines.append("")
