@@ -81,3 +81,20 @@ def test_the_default_board_is_printed_on_an_a4_page(tmp_path: Path, capsys: pyte
     w_mm, h_mm = (float(v) / 72 * 25.4 for v in box.groups())
     assert abs(w_mm - 297) < 0.3 and abs(h_mm - 210) < 0.3
     assert lab_main(["calibrate", "board", "--out", str(tmp_path / "nodir" / "b.pdf")]) == 2
+
+
+def test_a_run_keeps_the_files_it_was_given_by_their_absolute_path(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """run.json's params name the scenario, rig and calibration files absolutely, so that `lab resume`
+    and `lab bench replay` read the same files from another directory; a path that names no file
+    stays as typed (the run's own error names it)."""
+    from lab.cli.run import _params
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "s.toml").write_text("seed = 1\n")
+    (tmp_path / "cal.json").write_text("{}")
+    args = build_parser().parse_args(["run", "borg", "--scenario", "s.toml", "--calibration", "cal.json",
+                                      "--rig", "missing.toml", "--out", "runs/x"])
+    params = _params(args)
+    assert params["scenario"] == str(tmp_path / "s.toml") and params["calibration"] == str(tmp_path / "cal.json")
+    assert params["rig"] == "missing.toml" and params["out"] == "runs/x"

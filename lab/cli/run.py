@@ -111,8 +111,18 @@ def _out_dir(args: argparse.Namespace, procedure: str) -> Path:
     return root / f"{procedure}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
+# the options that name a file: run.json keeps them absolute, so that `lab resume` and `lab bench
+# replay` find the same files from any directory (a relative path would be read from theirs)
+_FILE_OPTIONS = ("rig", "scenario", "calibration", "plan")
+
+
 def _params(args: argparse.Namespace) -> dict[str, Any]:
-    return {k: v for k, v in vars(args).items() if k not in ("func", "command", "procedure") and not k.startswith("_")}
+    params = {k: v for k, v in vars(args).items() if k not in ("func", "command", "procedure") and not k.startswith("_")}
+    for key in _FILE_OPTIONS:
+        value = params.get(key)
+        if isinstance(value, str) and Path(value).is_file():
+            params[key] = str(Path(value).resolve())
+    return params
 
 
 def _run_borg(args: argparse.Namespace) -> int:
