@@ -96,3 +96,37 @@ def test_a_tag_planned_from_two_turntable_angles_and_seen_from_one_is_re_planned
     assert max(angles) - min(angles) >= proc.planner.config.min_angle_separation_rad, angles
     assert f"tag {tags[0]} seen in 2 of 3 view(s), all from one turntable angle" in r.reason, r.reason
     assert r.verdict == "ok", (r.verdict, r.reason)
+
+
+def test_a_tag_seen_from_its_second_angle_only_too_obliquely_to_use_is_re_planned(tmp_path):
+    """A detection the graph leaves out as too oblique (`rig_model.MIN_SIDE_RATIO`) measured nothing:
+    it may not stand for the second turntable angle the plan counted on (at N = 6, 52S: `ok` 2.6 mm
+    from the truth at a 1-sigma of 0.76 mm, its print scale and its depth left to one angle)."""
+    import numpy as np
+
+    from estimation.rig_model import MIN_SIDE_RATIO, side_ratio
+
+    def face_on_and_too_oblique(proc, tags):
+        present = proc.model.tags
+        face_on = [v for v in proc.planner.candidates
+                   if v.turntable_rad == 0.0 and set(tags) <= set(proc.planner.visible(v, present))][:1]
+        # 2D's face turned ~50 deg further: still detected, but flatter than the graph takes
+        oblique = [View(OBLIQUE_RAD, (0.0,) * 6), View(OBLIQUE_RAD, (0.0, 0.0, 0.0, 0.0, 0.0, 0.05))]
+        return face_on + oblique
+
+    proc, tags = _run_with_plan_for_2d(tmp_path, face_on_and_too_oblique)
+    r = proc.results["2D"]
+    views = [v for v in proc.views_done if v["module"] == "2D"]
+    first_round = [v for v in views if v["round"] == 0]
+    K, dist = proc.measure.slam.camera
+    flat = [side_ratio(np.asarray(d["corners_px"], float), K, dist)
+            for v in first_round[1:] for d in v["detections"] if d["id"] in tags]
+    # the oblique views did detect the tags, every one of them too flat to use
+    assert len(flat) == 4 and max(flat) < MIN_SIDE_RATIO, flat
+    again = [v for v in views if v["round"] >= 1]
+    assert again, r.reason
+    assert f"tag {tags[0]} seen in 1 of 3 view(s)" in r.reason, r.reason
+    assert r.verdict == "ok", (r.verdict, r.reason)
+
+
+OBLIQUE_RAD = 0.85
