@@ -635,7 +635,7 @@ class BorgProcedure:
         undistorted quadrilateral no flatter than the graph takes (`rig_model.MIN_SIDE_RATIO`).  A
         detection the graph leaves out as too oblique measured nothing: counted as a sighting, it
         hid a missing direction (at N = 6, 52S's tag seen from two turntable angles, one of them
-        at a side ratio of 0.60: both its measured views from one angle, its print scale and its
+        at a side ratio of 0.61: both its measured views from one angle, its print scale and its
         depth left to the scale's prior, 2.6 mm off at a 1-sigma of 0.76 mm, and no re-plan)."""
         from estimation.rig_model import MIN_SIDE_RATIO, side_ratio
 
