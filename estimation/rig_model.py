@@ -51,13 +51,15 @@ from lab.core.config import CalibrationConfig, Rig
 from lab.core.geometry import Pose3, Rot3, from_xyzrpy
 from lab.core.rig_calibration_file import RigCalibration
 
+from estimation import corner_kernel
+
 AXIS, BASE, MOUNT, INTRINSICS, LIFT = (gtsam.symbol(c, 0) for c in "abmkl")
 # the true lens's radial distortion against the camera file's: (dk1, dk2), a 2-vector variable
 DISTORTION = gtsam.symbol("d", 0)
 _ABOUT_Z = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])    # a rotation about z, in GTSAM's tangent
 GAUGE_SIGMA = 1e-7
-_ZEROS4 = np.zeros(4)
-_ZEROS4.flags.writeable = False
+# scratch the kernel writes no Jacobians into when none are wanted, and the lens of a factor without one
+_J6, _J1, _NO_LENS = np.empty((8, 6)), np.empty((8, 1)), np.zeros(0)
 
 
 @dataclass(frozen=True)
@@ -388,48 +390,37 @@ def _huber(k: float) -> gtsam.noiseModel.mEstimator.Base:
 def _fixed_corner_error(camera_key: int, tag_key: int, meas: np.ndarray, local: np.ndarray, cal: np.ndarray,
                         scale_key: int | None, lens: tuple[int, np.ndarray] | None):
     """The corner factor's error function with the intrinsics fixed (a run's graph, the bound):
-    the same error and Jacobians as `project_corners`, in as few numpy calls as the algebra
-    allows.  GTSAM calls it back once per corner factor per relinearisation, and numpy's fixed cost
-    per call on 4-row arrays, not the arithmetic, is what such a callback spends its time on
-    (32 us against 54 us a linearisation).  A corner behind the camera takes `project_corners`'s
-    path (a large flat error and no gradient)."""
-    fx, fy, sk, u0, v0 = cal.tolist()
-    to_px = np.array([[fx, 0.0], [sk, fy]])            # (x, y) @ to_px = (fx x + sk y, fy y)
-    mix = to_px.T                                       # the same on a corner's (d x, d y) rows
-    offset = cal[3:] - meas                             # (4, 2)
-    local_rows = local.repeat(2, axis=0) if scale_key is not None else None
-    zeros = _ZEROS4
-    lens_key, minus_basis = (None, None) if lens is None else (lens[0], -lens[1])
+    the same error and Jacobians as `project_corners`, computed by the compiled
+    `estimation.corner_kernel`.  GTSAM calls it back once per corner factor per relinearisation;
+    in numpy the fixed cost per call on 4-row arrays, not the arithmetic, was what such a callback
+    spent its time on (32 us a linearisation, 10 of them the callback and its reads of the
+    values).  A corner behind the camera takes `project_corners`'s path (a large flat error and no
+    gradient)."""
+    lens_key = None if lens is None else lens[0]
+    minus_basis = None if lens is None else -np.asarray(lens[1], float)
+    constants = corner_kernel.pack(cal, meas, local, minus_basis)
+    kernel = corner_kernel.corner_error
+    no_lens = _NO_LENS
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
         world_T_camera, world_T_tag = values.atPose3(camera_key), values.atPose3(tag_key)
-        k = 1.0 if scale_key is None else 1.0 + float(values.atVector(scale_key)[0])
-        camera_T_tag = world_T_camera.between(world_T_tag)
-        m = camera_T_tag.matrix()
-        q = (local @ m[:3, :3].T) * k + m[:3, 3]
-        if min(q[:, 2].tolist()) <= 0.0:
-            e, JC, JT, _ = project_corners(world_T_camera, world_T_tag, k * local, cal, meas,
-                                           want_jacobians=jacobians is not None)
-        else:
-            iz = 1.0 / q[:, 2]
-            xy = q[:, :2] * iz[:, None]
-            e = (xy @ to_px + offset).ravel()
-            if jacobians is not None:
-                x, y = xy[:, 0], xy[:, 1]
-                xy1 = x * y
-                # project_corners' interaction matrix, rows (u, v) of each corner, then the calibration
-                rows = np.array([xy1, -1.0 - x * x, y, -iz, zeros, x * iz,
-                                 1.0 + y * y, -xy1, -x, zeros, -iz, y * iz])
-                JC = (mix @ rows.T.reshape(-1, 2, 6)).reshape(-1, 6)
-                JT = JC @ camera_T_tag.AdjointMap()
-                JT *= -1.0
-        if lens_key is not None:
-            e += minus_basis @ values.atVector(lens_key)
-        if jacobians is not None:
+        scale = 0.0 if scale_key is None else values.atVector(scale_key)[0]
+        d = no_lens if lens_key is None else values.atVector(lens_key)
+        e = np.empty(8)
+        want = jacobians is not None
+        JC, JT, Js = (np.empty((8, 6)), np.empty((8, 6)), np.empty((8, 1))) if want else (_J6, _J6, _J1)
+        if not kernel(world_T_camera.matrix(), world_T_tag.matrix(), scale, d, constants, want, e, JC, JT, Js):
+            k = 1.0 + scale
+            e, JC, JT, _ = project_corners(world_T_camera, world_T_tag, k * local, cal, meas, want_jacobians=want)
+            if lens_key is not None:
+                e = e + minus_basis @ d
+            if want:
+                Js = (JT[:, 3:] * local.repeat(2, axis=0)).sum(axis=1)[:, None]
+        if want:
             jacobians[0], jacobians[1] = JC, JT
             j = 2
             if scale_key is not None:
-                jacobians[2] = (JT[:, 3:] * local_rows).sum(axis=1)[:, None]
+                jacobians[2] = Js
                 j = 3
             if lens_key is not None:
                 jacobians[j] = minus_basis

@@ -39,6 +39,7 @@ import numpy as np
 
 from estimation.corner_noise import CornerNoise, measured_corner_noise
 from estimation.fiducials import Detection, tag_object_points
+from estimation import corner_kernel
 from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
                                   chain_factor, corner_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
                                   undistort_px)
@@ -150,6 +151,8 @@ class SfGraphSlam:
             raise ValueError("the corner observation model needs the camera (K, dist)")
         self.camera = camera
         self._cal = cal3_s2(camera[0]) if camera is not None else None
+        if self.config.observation != "pose":
+            corner_kernel.warm()
         self.rig = rig
         self.calibration = calibration
         c = self.config

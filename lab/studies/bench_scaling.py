@@ -219,7 +219,8 @@ SPEED_TARGETS = {"step": {3: (2.0, 10.0), 8: (10.0, 100.0)}, "batch": {3: 20.0, 
 def linearisation_costs(repeats: int = 300) -> dict[str, float]:
     """Microseconds per linearisation of one factor, median of `repeats` linearisations of a graph
     of 20 copies: the run's two Python factors (the corner factor with fixed intrinsics, print
-    scale and lens term; the kinematic chain) against the C++ factors a compiled model would use
+    scale and lens term, its arithmetic compiled; the kinematic chain), a Python factor with the
+    corner factor's keys that computes nothing (the floor of a Python callback), against the C++ factors a compiled model would use
     (a BetweenFactorPose3, the corner-info factor's type; four GenericProjectionFactorCal3_S2, one
     tag's corners)."""
     import gtsam
@@ -253,10 +254,21 @@ def linearisation_costs(repeats: int = 300) -> dict[str, float]:
         values.insert(P(i), tag.transformFrom(p))
     noise6 = gtsam.noiseModel.Isotropic.Sigma(6, 0.01)
     noise2 = gtsam.noiseModel.Isotropic.Sigma(2, 0.02)
+    noise8 = gtsam.noiseModel.Isotropic.Sigma(8, 0.02)
+    nothing_e, nothing_J = np.zeros(8), [np.zeros((8, 6)), np.zeros((8, 6)), np.zeros((8, 1)), np.zeros((8, 2))]
+
+    def _nothing(this, values, jacobians):
+        if jacobians is not None:
+            jacobians[0], jacobians[1], jacobians[2], jacobians[3] = nothing_J
+        return nothing_e
+
     makers = {
-        "corner factor (Python)": lambda: [corner_factor(C(0), T(0), uv, local, 0.02, robust_k=3.0, fixed=cal,
+        "corner factor (Python callback, compiled arithmetic)": lambda: [corner_factor(C(0), T(0), uv, local, 0.02, robust_k=3.0, fixed=cal,
                                                          scale_key=S(0), distortion=(DISTORTION, radial_basis(uv, ss.SIM_K)))],
         "chain factor (Python)": lambda: [chain_factor(geometry, motion, C(0))],
+        # the floor of any Python factor: GTSAM's call into Python and back, the factor's own work nil
+        "a Python factor that does nothing": lambda: [gtsam.CustomFactor(
+            noise8, [C(0), T(0), S(0), DISTORTION], _nothing)],
         "BetweenFactorPose3 (C++)": lambda: [gtsam.BetweenFactorPose3(C(0), T(0), cam.between(tag), noise6)],
         "4 x GenericProjectionFactorCal3_S2 (C++)": lambda: [gtsam.GenericProjectionFactorCal3_S2(
             gtsam.Point2(*uv[i]), noise2, C(0), P(i), cal) for i in range(4)],

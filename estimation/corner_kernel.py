@@ -1,0 +1,122 @@
+"""The run's corner factor's arithmetic, compiled: the reprojection error of a tag's four corners and
+its Jacobians, in one call.
+
+GTSAM's Python `CustomFactor` calls back into Python once per corner factor per relinearisation.
+Written in numpy, the callback spent ~22 of its ~32 us in numpy's fixed cost per call on 4-row
+arrays, not in arithmetic; compiled by numba the same algebra is a few hundred nanoseconds, and what
+is left is the callback itself (reading the two poses out of `gtsam.Values`).  The numbers are
+`rig_model.project_corners`' (tests/test_corner_kernel.py holds them to it), with the intrinsics
+fixed, a print scale and a lens term; a corner on or behind the camera's plane is left to that
+function (the kernel says so and computes nothing)."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+# the layout of a factor's constants, one flat array so the call unpacks one argument, not eight:
+# fx, fy, skew, then (u0 - u_i, v0 - v_i) of the four measured corners, the four corners in the
+# tag frame as printed (x, y, z each), and minus the lens basis (8 rows of dk1, dk2)
+FX, FY, SKEW, OFFSET, LOCAL, MINUS_BASIS, SIZE = 0, 1, 2, 3, 11, 23, 39
+
+
+def pack(cal: np.ndarray, meas: np.ndarray, local: np.ndarray, minus_basis: np.ndarray | None) -> np.ndarray:
+    """The constants of one factor in the kernel's layout (`cal` = fx, fy, s, u0, v0; `meas` (4, 2)
+    undistorted corners in px; `local` (4, 3) m; `minus_basis` (8, 2) or none)."""
+    c = np.zeros(SIZE)
+    c[FX], c[FY], c[SKEW] = cal[0], cal[1], cal[2]
+    c[OFFSET:LOCAL] = (np.asarray(cal[3:5], float) - np.asarray(meas, float).reshape(4, 2)).ravel()
+    c[LOCAL:MINUS_BASIS] = np.asarray(local, float).reshape(12)
+    if minus_basis is not None:
+        c[MINUS_BASIS:SIZE] = np.asarray(minus_basis, float).reshape(16)
+    return c
+
+
+@numba.njit(cache=True, fastmath=False, nogil=True)
+def corner_error(world_T_camera: np.ndarray, world_T_tag: np.ndarray, scale: float, lens: np.ndarray,
+                 c: np.ndarray, want_jacobians: bool, e: np.ndarray, JC: np.ndarray, JT: np.ndarray,
+                 Js: np.ndarray) -> bool:
+    """Fill e (8,), and with `want_jacobians` JC and JT (8, 6, GTSAM's tangent, rotation first) and
+    Js (8, 1), the Jacobian on the print scale: the corner factor of `rig_model` at these 4x4 poses,
+    a tag (1 + `scale`) times its printed size, and the lens variable `lens` ((2,), or (0,) for none).
+    False, with nothing filled, if a corner is not in front of the camera."""
+    # camera_T_tag = world_T_camera^-1 world_T_tag
+    R = np.empty((3, 3))
+    t = np.empty(3)
+    for i in range(3):
+        for j in range(3):
+            R[i, j] = (world_T_camera[0, i] * world_T_tag[0, j] + world_T_camera[1, i] * world_T_tag[1, j]
+                       + world_T_camera[2, i] * world_T_tag[2, j])
+        t[i] = (world_T_camera[0, i] * (world_T_tag[0, 3] - world_T_camera[0, 3])
+                + world_T_camera[1, i] * (world_T_tag[1, 3] - world_T_camera[1, 3])
+                + world_T_camera[2, i] * (world_T_tag[2, 3] - world_T_camera[2, 3]))
+    k = 1.0 + scale
+    q = np.empty((4, 3))
+    for p in range(4):
+        lx, ly, lz = c[LOCAL + 3 * p], c[LOCAL + 3 * p + 1], c[LOCAL + 3 * p + 2]
+        for i in range(3):
+            q[p, i] = k * (R[i, 0] * lx + R[i, 1] * ly + R[i, 2] * lz) + t[i]
+        if q[p, 2] <= 0.0:
+            return False
+    fx, fy, sk = c[FX], c[FY], c[SKEW]
+    has_lens = lens.shape[0] == 2
+    for p in range(4):
+        iz = 1.0 / q[p, 2]
+        x, y = q[p, 0] * iz, q[p, 1] * iz
+        ru, rv = 2 * p, 2 * p + 1
+        e[ru] = fx * x + sk * y + c[OFFSET + ru]
+        e[rv] = fy * y + c[OFFSET + rv]
+        if has_lens:
+            e[ru] += c[MINUS_BASIS + 2 * ru] * lens[0] + c[MINUS_BASIS + 2 * ru + 1] * lens[1]
+            e[rv] += c[MINUS_BASIS + 2 * rv] * lens[0] + c[MINUS_BASIS + 2 * rv + 1] * lens[1]
+        if want_jacobians:
+            # the normalised point against the camera's own motion (the interaction matrix), then
+            # through the calibration
+            xy = x * y
+            ju0, ju1, ju2, ju3, ju4, ju5 = xy, -(1.0 + x * x), y, -iz, 0.0, x * iz
+            jv0, jv1, jv2, jv3, jv4, jv5 = 1.0 + y * y, -xy, -x, 0.0, -iz, y * iz
+            JC[ru, 0] = fx * ju0 + sk * jv0
+            JC[ru, 1] = fx * ju1 + sk * jv1
+            JC[ru, 2] = fx * ju2 + sk * jv2
+            JC[ru, 3] = fx * ju3 + sk * jv3
+            JC[ru, 4] = fx * ju4 + sk * jv4
+            JC[ru, 5] = fx * ju5 + sk * jv5
+            JC[rv, 0] = fy * jv0
+            JC[rv, 1] = fy * jv1
+            JC[rv, 2] = fy * jv2
+            JC[rv, 3] = fy * jv3
+            JC[rv, 4] = fy * jv4
+            JC[rv, 5] = fy * jv5
+    if not want_jacobians:
+        return True
+    # the tag moves camera_T_tag from the other side: JT = -JC Ad(camera_T_tag), with
+    # Ad = [[R, 0], [[t]x R, R]] in GTSAM's (rotation, translation) order
+    tR = np.empty((3, 3))
+    for j in range(3):
+        tR[0, j] = t[1] * R[2, j] - t[2] * R[1, j]
+        tR[1, j] = t[2] * R[0, j] - t[0] * R[2, j]
+        tR[2, j] = t[0] * R[1, j] - t[1] * R[0, j]
+    for r in range(8):
+        for j in range(3):
+            JT[r, j] = -(JC[r, 0] * R[0, j] + JC[r, 1] * R[1, j] + JC[r, 2] * R[2, j]
+                         + JC[r, 3] * tR[0, j] + JC[r, 4] * tR[1, j] + JC[r, 5] * tR[2, j])
+            JT[r, 3 + j] = -(JC[r, 3] * R[0, j] + JC[r, 4] * R[1, j] + JC[r, 5] * R[2, j])
+        # a corner moves with the tag's scale as with a tag-frame translation by its own position
+        p = r // 2
+        Js[r, 0] = (JT[r, 3] * c[LOCAL + 3 * p] + JT[r, 4] * c[LOCAL + 3 * p + 1]
+                    + JT[r, 5] * c[LOCAL + 3 * p + 2])
+    return True
+
+
+def warm() -> None:
+    """Load (or, the first time on a machine, compile) the kernel now: ~0.2 s from numba's cache,
+    ~1 s to compile, which a graph pays at construction rather than in its first timed step.  The
+    poses in the column-major layout `gtsam.Pose3.matrix()` hands out: numba compiles once per
+    array layout."""
+    eye = np.asfortranarray(np.eye(4))
+    tag = eye.copy(order="F")
+    tag[2, 3] = 1.0
+    local = np.array([[-0.05, 0.05, 0.0], [0.05, 0.05, 0.0], [0.05, -0.05, 0.0], [-0.05, -0.05, 0.0]])
+    c = pack(np.array([900.0, 900.0, 0.0, 640.0, 360.0]), np.zeros((4, 2)), local, None)
+    corner_error(eye, tag, 0.0, np.zeros(2), c, True, np.empty(8), np.empty((8, 6)), np.empty((8, 6)),
+                 np.empty((8, 1)))
