@@ -210,10 +210,11 @@ def to_markdown(res: dict[str, Any], command: str) -> list[str]:
         lines.append(f"| {part} | {total.get(part, 0.0):.2f} | {_ms(per)} | {' | '.join(inner)} | "
                      f"{int(total.get(f'{part}.reeliminated', 0)):,} |")
     steps = [r.get("step", 0.0) for r in rows]
-    q = max(len(steps) // 4, 1)
 
     def by_quarter(xs: list[float], scale: float = 1.0) -> str:
-        return " / ".join(f"{np.median(xs[i * q:(i + 1) * q]) * scale:.0f}" for i in range(4) if xs[i * q:(i + 1) * q])
+        # the quarters the speed study takes (bench_scaling): every round in one, none dropped
+        return " / ".join(f"{np.median(part) * scale:.0f}" for part in np.array_split(np.asarray(xs, float), 4)
+                          if len(part))
 
     # what grows with the run: the variables each step's updates re-eliminate (the Bayes tree from
     # the touched tags to the root), with those past the relinearisation threshold among them
