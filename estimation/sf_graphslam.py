@@ -37,7 +37,7 @@ from typing import Iterable, Sequence
 import gtsam
 import numpy as np
 
-from estimation.corner_noise import CornerNoise, measured_corner_noise
+from estimation.corner_noise import AbsoluteResiduals, CornerNoise
 from estimation.fiducials import Detection, tag_object_points
 from estimation import corner_kernel
 from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
@@ -196,7 +196,8 @@ class SfGraphSlam:
         # (graph index, obliquity scale, camera, tag, scale key, undistorted corners, tag corners, lens basis)
         self._corner_factors: list[tuple] = []
         self._residuals_done = 0
-        self._face_on_residuals = np.zeros(0)
+        self._face_on: list[np.ndarray] = []            # each solve's new face-on residuals (px)
+        self._face_on_abs = AbsoluteResiduals()
         self._corner_noise: CornerNoise | None = None
         self._corner_params = 0                          # variables the corners determine (6 per tag and view)
         # turntable tags whose prior is part of the calibration's joint prior (valued from the start)
@@ -705,10 +706,16 @@ class SfGraphSlam:
             if lensed:
                 e[lensed] -= np.array([todo[i][7] for i in lensed]) @ est.atVector(DISTORTION)
             scales = np.array([f[1] for f in todo])
-            self._face_on_residuals = np.concatenate([self._face_on_residuals, (e / scales[:, None]).ravel()])
-        if self._face_on_residuals.size:
-            self._corner_noise = measured_corner_noise(self._face_on_residuals, self._corner_params,
-                                                       self.config.corner_sigma_px)
+            face_on = (e / scales[:, None]).ravel()
+            self._face_on.append(face_on)
+            self._face_on_abs.add(face_on)
+        if self._face_on:
+            self._corner_noise = self._face_on_abs.corner_noise(self._corner_params, self.config.corner_sigma_px)
+
+    def face_on_residuals(self) -> np.ndarray:
+        """Every corner factor's residual components (px, face-on) at the estimate that first
+        included it: what the measured corner noise is the scatter of."""
+        return np.concatenate(self._face_on) if self._face_on else np.zeros(0)
 
     def corner_noise(self) -> CornerNoise | None:
         """The corner sigma the run's residuals imply (corner model only; None before any)."""

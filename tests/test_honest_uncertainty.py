@@ -10,7 +10,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from estimation.corner_noise import measured_corner_noise
+from estimation.corner_noise import AbsoluteResiduals, measured_corner_noise
 from estimation.rig_calibration_solve import _measured_glue_sigma
 from estimation.rig_model import GAUGE_SIGMA, AXIS, BASE, INTRINSICS, MOUNT, RigGeometry, cal3_s2, tag_prior_noise
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
@@ -37,6 +37,27 @@ def test_corner_noise_is_measured_from_residuals_and_ignores_outliers():
     assert noise.covariance_scale == pytest.approx(noise.variance_factor) and noise.covariance_scale > 10
     better = measured_corner_noise(rng.normal(0.0, 0.01, 5000), parameters=100, graph_sigma_px=0.02)
     assert better.variance_factor < 0.5 and better.covariance_scale == 1.0   # never shrinks the priors
+
+
+def test_the_running_median_of_a_runs_residuals_is_the_whole_arrays_bit_for_bit():
+    """The graph adds each solve's residuals to a sorted store instead of taking the median of all
+    of them again; the corner noise it reads must be the one the whole array gives."""
+    rng = np.random.default_rng(7)
+    store, seen = AbsoluteResiduals(), []
+    for size in (1, 2, 7, 240, 0, 33, 1000, 8, 8):
+        chunk = rng.normal(0.0, 0.1, size)
+        if size > 5:
+            chunk[::5] = np.round(chunk[::5], 2)          # ties
+            chunk[3] = np.nan if size % 2 else np.inf     # a behind-the-camera residual is finite; these are not
+        store.add(chunk)
+        seen.append(chunk)
+        whole = np.concatenate(seen)
+        finite = whole[np.isfinite(whole)]
+        assert len(store) == finite.size
+        if finite.size:
+            assert store.median() == float(np.median(np.abs(finite)))
+        for parameters in (0, 5, 200):
+            assert store.corner_noise(parameters, 0.02) == measured_corner_noise(whole, parameters, 0.02)
 
 
 def test_too_few_residuals_keep_the_graphs_own_sigma():
