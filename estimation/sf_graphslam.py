@@ -209,6 +209,15 @@ class SfGraphSlam:
         for r in model.relations:
             self._related.setdefault(r.a, set()).add(r.b)
             self._related.setdefault(r.b, set()).add(r.a)
+        # the relations undecided with both tags in the graph, kept as tags arrive and relations
+        # are decided: the gate reads these twice a step, and a pass over every relation of the
+        # structure was 0.1 ms a read at N = 8.  Read in the structure's relation order.
+        self._relation_order = {key: i for i, key in enumerate(self.relations)}
+        self._relations_of: dict[int, list[tuple[int, int]]] = {}
+        for key in self.relations:
+            for t in key:
+                self._relations_of.setdefault(t, []).append(key)
+        self._open: set[tuple[int, int]] = set()
         if rig is not None:
             if calibration is not None and calibration.joint_covariance is not None:
                 self._joint_prior(rig, calibration)
@@ -330,6 +339,8 @@ class SfGraphSlam:
                 rel.decided = rel.tied = False
                 rel.reason = ""
                 rel.deploy = None
+        self._open = {key for key, rel in self.relations.items()
+                      if not rel.decided and rel.a in self.tags and rel.b in self.tags}
 
     # ---- building the graph -------------------------------------------------------------------
     def add_view(self, structure_T_camera: Pose3 | None, detections: Sequence[Detection],
@@ -412,6 +423,9 @@ class SfGraphSlam:
             if d.tag_id not in self.tags:
                 self._corner_params += 6
                 self.tags.add(d.tag_id)
+                for key in self._relations_of.get(d.tag_id, ()):
+                    if not self.relations[key].decided and key[0] in self.tags and key[1] in self.tags:
+                        self._open.add(key)
                 self._pending[self.key(d.tag_id)] = []
                 if d.tag_id in self._joint_tags:
                     self._pending.pop(self.key(d.tag_id))      # valued with the joint prior
@@ -752,9 +766,8 @@ class SfGraphSlam:
         """The relations `_decide_relations` reads now: undecided, both tags seen in enough views
         (a held deployable's deployment is read every round too; other held pairs wait)."""
         out = []
-        for rel in self.relations.values():
-            if rel.decided or rel.a not in self.tags or rel.b not in self.tags:
-                continue
+        for key in sorted(self._open, key=self._relation_order.__getitem__):
+            rel = self.relations[key]
             if min(self.observations.get(rel.a, 0), self.observations.get(rel.b, 0)) < self.config.min_observations:
                 continue
             if {rel.a, rel.b} & self.held and rel.kind != "deployable":
@@ -773,6 +786,7 @@ class SfGraphSlam:
                     rel.deploy = self._deploy_check(rel)
                 continue
             rel.decided = True
+            self._open.discard((rel.a, rel.b))
             design = self.model.design_between(rel.a, rel.b)
             if rel.kind == "deployable":
                 rel.deploy = self._deploy_check(rel)

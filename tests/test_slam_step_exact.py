@@ -333,3 +333,38 @@ def test_a_pair_brought_to_the_root_keeps_its_estimate_and_its_joint_marginal(tm
     joint = slam.isam.jointMarginalCovariance([a, b])
     for got, want in zip([joint.at(a, a), joint.at(a, b), joint.at(b, b)], blocks):
         assert got == pytest.approx(want, rel=1e-9, abs=1e-15)
+
+
+def test_the_relations_the_gate_reads_are_those_a_pass_over_every_relation_finds():
+    """`_decidable` reads the relations kept open as tags arrive and relations are decided, not
+    every relation of the structure; the list, in its order, must be the full pass's, through
+    steps, held tags, a release and a re-placed module."""
+
+    def every(slam: SfGraphSlam) -> list:
+        out = []
+        for rel in slam.relations.values():
+            if rel.decided or rel.a not in slam.tags or rel.b not in slam.tags:
+                continue
+            if min(slam.observations.get(rel.a, 0), slam.observations.get(rel.b, 0)) < slam.config.min_observations:
+                continue
+            if {rel.a, rel.b} & slam.held and rel.kind != "deployable":
+                continue
+            out.append(rel)
+        return out
+
+    slam = SfGraphSlam(MODEL, SlamConfig(observation="corners", corner_sigma_px=0.05, tag_scale_sigma=0.001),
+                       rig=GEOM, calibration=_calibration(), camera=(K, np.zeros(5)))
+    read = []
+    for i, views in enumerate(_steps() + _steps(seed=1)):
+        for cam, dets, motion in views:
+            slam.add_view(cam, dets, motion)
+            assert slam._decidable() == every(slam)
+        slam.update(snapshot=[0, 1, 2], hold=True)
+        assert slam._decidable() == every(slam)
+        read.append(len(every(slam)))
+        slam.release([0, 1, 2])
+        assert slam._decidable() == every(slam)
+        if i == 1:
+            slam.replace_tags([0, 1, 2])
+            assert slam._decidable() == every(slam)
+    assert any(r.decided for r in slam.relations.values()) and max(read) > 0
