@@ -1,31 +1,31 @@
 """The run's corner factor's arithmetic, compiled: the reprojection error of a tag's four corners and
-its Jacobians, in one call.
+its Jacobians, in one call, with the intrinsics fixed (a run's graph) or a variable (the rig
+survey's).
 
 GTSAM's Python `CustomFactor` calls back into Python once per corner factor per relinearisation.
 Written in numpy, the callback spent ~22 of its ~32 us in numpy's fixed cost per call on 4-row
 arrays, not in arithmetic; compiled by numba the same algebra is a few hundred nanoseconds, and what
 is left is the callback itself (reading the two poses out of `gtsam.Values`).  The numbers are
-`rig_model.project_corners`' (tests/test_corner_kernel.py holds them to it), with the intrinsics
-fixed, a print scale and a lens term; a corner on or behind the camera's plane is left to that
-function (the kernel says so and computes nothing)."""
+`rig_model.project_corners`' (tests/test_corner_kernel.py holds them to it), with a print scale
+and a lens term; a corner on or behind the camera's plane is left to that function (the kernel says
+so and computes nothing)."""
 
 from __future__ import annotations
 
 import numba
 import numpy as np
 
-# the layout of a factor's constants, one flat array so the call unpacks one argument, not eight:
-# fx, fy, skew, then (u0 - u_i, v0 - v_i) of the four measured corners, the four corners in the
-# tag frame as printed (x, y, z each), and minus the lens basis (8 rows of dk1, dk2)
-FX, FY, SKEW, OFFSET, LOCAL, MINUS_BASIS, SIZE = 0, 1, 2, 3, 11, 23, 39
+# the layout of a factor's constants, one flat array so the call unpacks one argument, not six:
+# the four measured corners (u, v each, px), the four corners in the tag frame as printed (x, y, z
+# each, m), and minus the lens basis (8 rows of dk1, dk2)
+MEAS, LOCAL, MINUS_BASIS, SIZE = 0, 8, 20, 36
 
 
-def pack(cal: np.ndarray, meas: np.ndarray, local: np.ndarray, minus_basis: np.ndarray | None) -> np.ndarray:
-    """The constants of one factor in the kernel's layout (`cal` = fx, fy, s, u0, v0; `meas` (4, 2)
-    undistorted corners in px; `local` (4, 3) m; `minus_basis` (8, 2) or none)."""
+def pack(meas: np.ndarray, local: np.ndarray, minus_basis: np.ndarray | None) -> np.ndarray:
+    """The constants of one factor in the kernel's layout (`meas` (4, 2) undistorted corners in
+    px; `local` (4, 3) m; `minus_basis` (8, 2) or none)."""
     c = np.zeros(SIZE)
-    c[FX], c[FY], c[SKEW] = cal[0], cal[1], cal[2]
-    c[OFFSET:LOCAL] = (np.asarray(cal[3:5], float) - np.asarray(meas, float).reshape(4, 2)).ravel()
+    c[MEAS:LOCAL] = np.asarray(meas, float).reshape(8)
     c[LOCAL:MINUS_BASIS] = np.asarray(local, float).reshape(12)
     if minus_basis is not None:
         c[MINUS_BASIS:SIZE] = np.asarray(minus_basis, float).reshape(16)
@@ -34,12 +34,13 @@ def pack(cal: np.ndarray, meas: np.ndarray, local: np.ndarray, minus_basis: np.n
 
 @numba.njit(cache=True, fastmath=False, nogil=True)
 def corner_error(world_T_camera: np.ndarray, world_T_tag: np.ndarray, scale: float, lens: np.ndarray,
-                 c: np.ndarray, want_jacobians: bool, e: np.ndarray, JC: np.ndarray, JT: np.ndarray,
-                 Js: np.ndarray) -> bool:
-    """Fill e (8,), and with `want_jacobians` JC and JT (8, 6, GTSAM's tangent, rotation first) and
-    Js (8, 1), the Jacobian on the print scale: the corner factor of `rig_model` at these 4x4 poses,
-    a tag (1 + `scale`) times its printed size, and the lens variable `lens` ((2,), or (0,) for none).
-    False, with nothing filled, if a corner is not in front of the camera."""
+                 cal: np.ndarray, c: np.ndarray, want_jacobians: bool, want_calibration: bool, e: np.ndarray,
+                 JC: np.ndarray, JT: np.ndarray, Js: np.ndarray, JK: np.ndarray) -> bool:
+    """Fill e (8,), and with `want_jacobians` JC and JT (8, 6, GTSAM's tangent, rotation first),
+    Js (8, 1), the Jacobian on the print scale, and with `want_calibration` JK (8, 5), on the
+    intrinsics: the corner factor of `rig_model` at these 4x4 poses, a tag (1 + `scale`) times its
+    printed size, the pinhole `cal` = (fx, fy, s, u0, v0), and the lens variable `lens` ((2,), or
+    (0,) for none).  False, with nothing filled, if a corner is not in front of the camera."""
     # camera_T_tag = world_T_camera^-1 world_T_tag
     R = np.empty((3, 3))
     t = np.empty(3)
@@ -58,17 +59,20 @@ def corner_error(world_T_camera: np.ndarray, world_T_tag: np.ndarray, scale: flo
             q[p, i] = k * (R[i, 0] * lx + R[i, 1] * ly + R[i, 2] * lz) + t[i]
         if q[p, 2] <= 0.0:
             return False
-    fx, fy, sk = c[FX], c[FY], c[SKEW]
+    fx, fy, sk, u0, v0 = cal[0], cal[1], cal[2], cal[3], cal[4]
     has_lens = lens.shape[0] == 2
     for p in range(4):
         iz = 1.0 / q[p, 2]
         x, y = q[p, 0] * iz, q[p, 1] * iz
         ru, rv = 2 * p, 2 * p + 1
-        e[ru] = fx * x + sk * y + c[OFFSET + ru]
-        e[rv] = fy * y + c[OFFSET + rv]
+        e[ru] = fx * x + sk * y + (u0 - c[MEAS + ru])
+        e[rv] = fy * y + (v0 - c[MEAS + rv])
         if has_lens:
             e[ru] += c[MINUS_BASIS + 2 * ru] * lens[0] + c[MINUS_BASIS + 2 * ru + 1] * lens[1]
             e[rv] += c[MINUS_BASIS + 2 * rv] * lens[0] + c[MINUS_BASIS + 2 * rv + 1] * lens[1]
+        if want_jacobians and want_calibration:
+            JK[ru, 0], JK[ru, 1], JK[ru, 2], JK[ru, 3], JK[ru, 4] = x, 0.0, y, 1.0, 0.0
+            JK[rv, 0], JK[rv, 1], JK[rv, 2], JK[rv, 3], JK[rv, 4] = 0.0, y, 0.0, 0.0, 1.0
         if want_jacobians:
             # the normalised point against the camera's own motion (the interaction matrix), then
             # through the calibration
@@ -117,6 +121,8 @@ def warm() -> None:
     tag = eye.copy(order="F")
     tag[2, 3] = 1.0
     local = np.array([[-0.05, 0.05, 0.0], [0.05, 0.05, 0.0], [0.05, -0.05, 0.0], [-0.05, -0.05, 0.0]])
-    c = pack(np.array([900.0, 900.0, 0.0, 640.0, 360.0]), np.zeros((4, 2)), local, None)
-    corner_error(eye, tag, 0.0, np.zeros(2), c, True, np.empty(8), np.empty((8, 6)), np.empty((8, 6)),
-                 np.empty((8, 1)))
+    c = pack(np.zeros((4, 2)), local, None)
+    cal = np.array([900.0, 900.0, 0.0, 640.0, 360.0])
+    for want_calibration in (False, True):
+        corner_error(eye, tag, 0.0, np.zeros(2), cal, c, True, want_calibration, np.empty(8), np.empty((8, 6)),
+                     np.empty((8, 6)), np.empty((8, 1)), np.empty((8, 5)))

@@ -59,7 +59,7 @@ DISTORTION = gtsam.symbol("d", 0)
 _ABOUT_Z = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])    # a rotation about z, in GTSAM's tangent
 GAUGE_SIGMA = 1e-7
 # scratch the kernel writes no Jacobians into when none are wanted, and the lens of a factor without one
-_J6, _J1, _NO_LENS = np.empty((8, 6)), np.empty((8, 1)), np.zeros(0)
+_J6, _J1, _J5, _NO_LENS = np.empty((8, 6)), np.empty((8, 1)), np.empty((8, 5)), np.zeros(0)
 
 
 @dataclass(frozen=True)
@@ -342,37 +342,8 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     fixed_K = None if fixed is None else _cal_vector(fixed)
     lens_basis = None if distortion is None else np.asarray(distortion[1], float)
 
-    if fixed_K is not None:
-        error = _fixed_corner_error(camera_key, tag_key, meas, local, fixed_K, scale_key,
-                                    None if distortion is None else (distortion[0], lens_basis))
-        keys = [camera_key, tag_key] + ([] if scale_key is None else [scale_key])
-        if distortion is not None:
-            keys.append(distortion[0])
-        return gtsam.CustomFactor(noise, keys, error)
-
-    local_rows = np.repeat(local, 2, axis=0)             # (8, 3): each row's corner, for the scale
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
-        k = 1.0 + float(values.atVector(scale_key)[0]) if scale_key is not None else 1.0
-        cal = fixed_K if fixed_K is not None else _cal_vector(values.atCal3_S2(intrinsics_key))
-        e, JC, JT, JK = project_corners(values.atPose3(camera_key), values.atPose3(tag_key), k * local, cal, meas,
-                                        want_jacobians=jacobians is not None, want_calibration=fixed is None)
-        if lens_basis is not None:
-            e -= lens_basis @ values.atVector(distortion[0])
-        if jacobians is not None:
-            jacobians[0], jacobians[1] = JC, JT
-            if fixed is None:
-                jacobians[2] = JK
-            j = 2 if fixed is not None else 3
-            if scale_key is not None:
-                # a corner moves with the tag's scale as with a tag-frame translation by its own
-                # position: the tag Jacobian's translation block, row by row, against the corner
-                jacobians[j] = np.sum(JT[:, 3:] * local_rows, axis=1, keepdims=True)
-                j += 1
-            if lens_basis is not None:
-                jacobians[j] = -lens_basis
-        return e
-
+    error = _corner_error(camera_key, tag_key, None if fixed is not None else intrinsics_key, meas, local, fixed_K,
+                          scale_key, None if distortion is None else (distortion[0], lens_basis))
     keys = [camera_key, tag_key] if fixed is not None else [camera_key, tag_key, intrinsics_key]
     if scale_key is not None:
         keys.append(scale_key)
@@ -387,31 +358,35 @@ def _huber(k: float) -> gtsam.noiseModel.mEstimator.Base:
     return gtsam.noiseModel.mEstimator.Huber.Create(k)
 
 
-def _fixed_corner_error(camera_key: int, tag_key: int, meas: np.ndarray, local: np.ndarray, cal: np.ndarray,
-                        scale_key: int | None, lens: tuple[int, np.ndarray] | None):
-    """The corner factor's error function with the intrinsics fixed (a run's graph, the bound):
-    the same error and Jacobians as `project_corners`, computed by the compiled
-    `estimation.corner_kernel`.  GTSAM calls it back once per corner factor per relinearisation;
-    in numpy the fixed cost per call on 4-row arrays, not the arithmetic, was what such a callback
-    spent its time on (32 us a linearisation, 10 of them the callback and its reads of the
-    values).  A corner behind the camera takes `project_corners`'s path (a large flat error and no
-    gradient)."""
+def _corner_error(camera_key: int, tag_key: int, intrinsics_key: int | None, meas: np.ndarray, local: np.ndarray,
+                  cal: np.ndarray | None, scale_key: int | None, lens: tuple[int, np.ndarray] | None):
+    """The corner factor's error function: with the intrinsics fixed at `cal` (a run's graph, the
+    bound) or read from the variable `intrinsics_key` (the rig survey), the same error and
+    Jacobians as `project_corners`, computed by the compiled `estimation.corner_kernel`.  GTSAM
+    calls it back once per corner factor per relinearisation; in numpy the fixed cost per call on
+    4-row arrays, not the arithmetic, was what such a callback spent its time on (32 us a
+    linearisation, 10 of them the callback and its reads of the values).  A corner behind the
+    camera takes `project_corners`'s path (a large flat error and no gradient)."""
     lens_key = None if lens is None else lens[0]
     minus_basis = None if lens is None else -np.asarray(lens[1], float)
-    constants = corner_kernel.pack(cal, meas, local, minus_basis)
+    constants = corner_kernel.pack(meas, local, minus_basis)
     kernel = corner_kernel.corner_error
     no_lens = _NO_LENS
+    free = intrinsics_key is not None
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
         world_T_camera, world_T_tag = values.atPose3(camera_key), values.atPose3(tag_key)
         scale = 0.0 if scale_key is None else values.atVector(scale_key)[0]
         d = no_lens if lens_key is None else values.atVector(lens_key)
+        K = _cal_vector(values.atCal3_S2(intrinsics_key)) if free else cal
         e = np.empty(8)
         want = jacobians is not None
         JC, JT, Js = (np.empty((8, 6)), np.empty((8, 6)), np.empty((8, 1))) if want else (_J6, _J6, _J1)
-        if not kernel(world_T_camera.matrix(), world_T_tag.matrix(), scale, d, constants, want, e, JC, JT, Js):
-            k = 1.0 + scale
-            e, JC, JT, _ = project_corners(world_T_camera, world_T_tag, k * local, cal, meas, want_jacobians=want)
+        JK = np.empty((8, 5)) if want and free else _J5
+        if not kernel(world_T_camera.matrix(), world_T_tag.matrix(), scale, d, K, constants, want, free, e,
+                      JC, JT, Js, JK):
+            e, JC, JT, JK = project_corners(world_T_camera, world_T_tag, (1.0 + scale) * local, K, meas,
+                                            want_jacobians=want, want_calibration=free)
             if lens_key is not None:
                 e = e + minus_basis @ d
             if want:
@@ -419,9 +394,12 @@ def _fixed_corner_error(camera_key: int, tag_key: int, meas: np.ndarray, local: 
         if want:
             jacobians[0], jacobians[1] = JC, JT
             j = 2
-            if scale_key is not None:
-                jacobians[2] = Js
+            if free:
+                jacobians[2] = JK
                 j = 3
+            if scale_key is not None:
+                jacobians[j] = Js
+                j += 1
             if lens_key is not None:
                 jacobians[j] = minus_basis
         return e
@@ -434,7 +412,7 @@ def refine_tag_pose(structure_T_tag: Pose3, cameras: Sequence[Pose3], corners_px
                     scale_sigma: float = 0.0, iterations: int = 5, tolerance: float = 1e-8) -> tuple[Pose3, float]:
     """The tag pose (and, with `scale_sigma`, its print scale under that zero-mean prior) that best
     reprojects its corners into the given views, the cameras held where they are: Gauss-Newton on
-    the corner factors' own error (`_fixed_corner_error`: undistorted corners `corners_px`
+    the corner factors' own error (`_corner_error`, intrinsics fixed: undistorted corners `corners_px`
     (n, 4, 2), each view's sigma, the lens correction `lens` = (bases (n, 8, 2), d) applied), from
     `structure_T_tag` and `scale`, until a step is below `tolerance` (rad, m).  A new tag's
     starting value for the graph: one sighting's IPPE pose is a degree or so off in tilt, and iSAM2

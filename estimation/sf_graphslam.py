@@ -690,7 +690,7 @@ class SfGraphSlam:
     def _collect_residuals(self) -> None:
         """The face-on reprojection residuals of the corner factors added since the last solve, at
         the estimate that first includes them (each factor once: O(new factors) per step).  The
-        corner factors' own error (`rig_model._fixed_corner_error`), evaluated for the step's
+        corner factors' own error (`rig_model._corner_error`), evaluated for the step's
         factors in one array pass instead of one Python callback each."""
         todo = self._corner_factors[self._residuals_done:]
         if not todo:
