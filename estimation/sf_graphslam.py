@@ -205,18 +205,15 @@ class SfGraphSlam:
         # the keys a step reads marginals of (its module's tags and their relations' partners),
         # eliminated last by every solve until the module is released (`_last_groups`)
         self._last: list[int] = []
-        self._related: dict[int, set[int]] = {}
-        for r in model.relations:
-            self._related.setdefault(r.a, set()).add(r.b)
-            self._related.setdefault(r.b, set()).add(r.a)
-        # the relations undecided with both tags in the graph, kept as tags arrive and relations
-        # are decided: the gate reads these twice a step, and a pass over every relation of the
-        # structure was 0.1 ms a read at N = 8.  Read in the structure's relation order.
-        self._relation_order = {key: i for i, key in enumerate(self.relations)}
+        # each tag's relations (their keys in `relations`), which name its partners too
         self._relations_of: dict[int, list[tuple[int, int]]] = {}
         for key in self.relations:
             for t in key:
                 self._relations_of.setdefault(t, []).append(key)
+        # the relations undecided with both tags in the graph, kept as tags arrive and relations
+        # are decided: the gate reads these twice a step, and a pass over every relation of the
+        # structure was 0.1 ms a read at N = 8.  Read in the structure's relation order.
+        self._relation_order = {key: i for i, key in enumerate(self.relations)}
         self._open: set[tuple[int, int]] = set()
         if rig is not None:
             if calibration is not None and calibration.joint_covariance is not None:
@@ -530,7 +527,7 @@ class SfGraphSlam:
         snapshot = list(snapshot)
         if hold:
             self.held.update(snapshot)
-        partners = sorted({p for t in snapshot for p in self._related.get(t, ())} - set(snapshot))
+        partners = sorted({p for t in snapshot for key in self._relations_of.get(t, ()) for p in key} - set(snapshot))
         self._last = [self.key(t) for t in snapshot + partners]
         self._isam_step()
         self._prefetch([t for t in snapshot if self.has_tag(t)]

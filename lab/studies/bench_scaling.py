@@ -220,9 +220,9 @@ def linearisation_costs(repeats: int = 300) -> dict[str, float]:
     """Microseconds per linearisation of one factor, median of `repeats` linearisations of a graph
     of 20 copies: the run's two Python factors (the corner factor with fixed intrinsics, print
     scale and lens term, its arithmetic compiled; the kinematic chain), a Python factor with the
-    corner factor's keys that computes nothing (the floor of a Python callback), against the C++ factors a compiled model would use
-    (a BetweenFactorPose3, the corner-info factor's type; four GenericProjectionFactorCal3_S2, one
-    tag's corners)."""
+    corner factor's keys that computes nothing (the floor of a Python callback), against the C++
+    factors a compiled model would use (a BetweenFactorPose3, the corner-info factor's type; four
+    GenericProjectionFactorCal3_S2, one tag's corners)."""
     import gtsam
 
     from estimation.fiducials import tag_object_points
