@@ -52,6 +52,7 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
+from estimation import edge_kernel
 from estimation.tag_family import BASE, dictionary
 
 __all__ = ["QuadFit", "fit_quads", "read_bits", "code_bits", "identify", "ring_deviation", "edge_blur_px", "MIN_ROWS"]
@@ -137,6 +138,36 @@ def _bilinear(g: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None, coarse: bool,
               check: np.ndarray | None = None, quiet_zone: bool = True
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`_fit_pass_numpy`, compiled (`estimation.edge_kernel`): the same outputs; grey float32."""
+    H, W = grey.shape
+    N = len(q)
+    E = N * 4
+    p_in, d_in = _lines_from_corners(_undistort(q, camera))
+    geo = edge_kernel.edge_geometry(q, coarse, MIN_REACH_PX, MAX_REACH_PX, COARSE_SEARCH_PX, COARSE_SEARCH_CELLS)
+    chk = np.zeros(N, bool) if check is None else np.asarray(check, bool)
+    edge_of, pts, row_ok, occluded, lvl_ok = edge_kernel.crossings(grey, q, geo, coarse, chk, quiet_zone, _KERNEL_CONSTS)
+    if edge_of.size == 0:   # quads too small for a single row clear of their corners
+        return p_in, d_in, np.zeros((N, 4), bool), np.full((N, 4), np.nan), np.zeros((N, 4, 3)), np.zeros((N, 4))
+    pts = _undistort(pts, camera, (H, W))
+    centroid, theta, fitted, rms, stats, occ = edge_kernel.fit_lines(edge_of, pts, row_ok, occluded, lvl_ok, E,
+                                                                     float(MIN_ROWS))
+    dr = np.column_stack([np.cos(theta), np.sin(theta)])
+    dr *= np.where(np.sum(dr * d_in.reshape(-1, 2), axis=1) < 0, -1.0, 1.0)[:, None]   # keep corner i -> i+1
+    fitted = fitted.reshape(N, 4)
+    p = np.where(fitted[..., None], centroid.reshape(N, 4, 2), p_in)
+    d = np.where(fitted[..., None], dr.reshape(N, 4, 2), d_in)
+    return p, d, fitted, np.where(fitted, rms.reshape(N, 4), np.nan), stats.reshape(N, 4, 3), occ.reshape(N, 4)
+
+
+# the kernel's constants, in the order `edge_kernel.crossings` unpacks them
+_KERNEL_CONSTS = np.array([MIN_ROWS, MIN_CONTRAST, OCCLUSION_TOLERANCE, OCCLUSION_NOISE_SIGMAS, OCCLUSION_MIN_CELL_PX,
+                           OCCLUSION_ABSOLUTE_MIN_CELL_PX, OCCLUSION_MAX_DROP, OCCLUSION_FAR_PX,
+                           OCCLUSION_MIN_CONTRAST, OCCLUSION_GUARD_ROWS, EDGE_LEVELS_MIN_CELL_PX], dtype=np.float64)
+
+
+def _fit_pass_numpy(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None, coarse: bool,
+                    check: np.ndarray | None = None, quiet_zone: bool = True
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One pass over every edge of every quad: each edge as a line (point, unit direction) in ideal
     pinhole pixels (image pixels without `camera`), whether it was fitted, the rms of its crossings
     about it (px), and its fit's statistics for `_corner_sigma` (N, 4, 3).  `coarse`: find each row's crossing as the steepest dark-to-bright step
@@ -524,23 +555,21 @@ def code_bits(family: str = BASE) -> np.ndarray:
 
 def _unit_square_to_quads(q: np.ndarray, uv1: np.ndarray) -> np.ndarray:
     """Points (P, 3: u, v, 1) of the unit square mapped into every quad (N, 4, 2) by the homography
-    taking its corners (0,0), (1,0), (1,1), (0,1) to the quad's: (N, P, 2).  The N 8x8 systems are
-    solved at once."""
-    N = len(q)
-    A = np.zeros((N, 8, 8))
-    b = q.reshape(N, 8)
-    for i, (u, v) in enumerate(((0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0))):
-        x, y = q[:, i, 0], q[:, i, 1]
-        A[:, 2 * i, 0:3] = (u, v, 1.0)
-        A[:, 2 * i, 6] = -u * x
-        A[:, 2 * i, 7] = -v * x
-        A[:, 2 * i + 1, 3:6] = (u, v, 1.0)
-        A[:, 2 * i + 1, 6] = -u * y
-        A[:, 2 * i + 1, 7] = -v * y
-    h = np.linalg.solve(A, b[..., None])[..., 0]
-    Hm = np.concatenate([h, np.ones((N, 1))], axis=1).reshape(N, 3, 3)
-    p = np.einsum("nij,pj->npi", Hm, uv1)
-    return p[..., :2] / p[..., 2:]
+    taking its corners (0,0), (1,0), (1,1), (0,1) to the quad's: (N, P, 2).  The homography in
+    closed form (Heckbert 1989), the same arithmetic as `edge_kernel.tag_levels`."""
+    x0, y0, x1, y1 = q[:, 0, 0, None], q[:, 0, 1, None], q[:, 1, 0, None], q[:, 1, 1, None]
+    x2, y2, x3, y3 = q[:, 2, 0, None], q[:, 2, 1, None], q[:, 3, 0, None], q[:, 3, 1, None]
+    sx, sy = x0 - x1 + x2 - x3, y0 - y1 + y2 - y3
+    dx1, dx2, dy1, dy2 = x1 - x2, x3 - x2, y1 - y2, y3 - y2
+    with np.errstate(divide="ignore", invalid="ignore"):     # a degenerate quad maps to nan
+        den = dx1 * dy2 - dx2 * dy1
+        hg = (sx * dy2 - dx2 * sy) / den
+        hh = (dx1 * sy - sx * dy1) / den
+        u, v = uv1[None, :, 0], uv1[None, :, 1]
+        X = (x1 - x0 + hg * x1) * u + (x3 - x0 + hh * x3) * v + x0
+        Y = (y1 - y0 + hg * y1) * u + (y3 - y0 + hh * y3) * v + y0
+        Z = hg * u + hh * v + 1.0
+        return np.stack([X / Z, Y / Z], axis=2)
 
 
 def _grid_samples(grey: np.ndarray, quads: np.ndarray) -> np.ndarray:
