@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 
 import cv2
+import numba
 import numpy as np
 
 from estimation.tag_quads import CELLS, MAX_REACH_PX, MIN_REACH_PX, _bilinear, edge_blur_px, fit_quads
@@ -149,6 +150,50 @@ def _fit_levels(y: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, float]:
     return levels, float(np.sqrt(np.mean(r * r)))
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _normal_equations(blurred: np.ndarray, at: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`_fit_levels`' normal equations (3x3 and 3) over the pixels `at` (flat indices) of the
+    blurred bases (h, w, 3), without gathering them first: the gather and the products were a
+    dozen numpy calls on a few thousand pixels, ten times a tag."""
+    flat = blurred.reshape(-1, 3)
+    AtA = np.zeros((3, 3))
+    Aty = np.zeros(3)
+    for k in range(len(at)):
+        a0, a1, a2 = np.float64(flat[at[k], 0]), np.float64(flat[at[k], 1]), np.float64(flat[at[k], 2])
+        AtA[0, 0] += a0 * a0
+        AtA[0, 1] += a0 * a1
+        AtA[0, 2] += a0 * a2
+        AtA[1, 1] += a1 * a1
+        AtA[1, 2] += a1 * a2
+        AtA[2, 2] += a2 * a2
+        Aty[0] += a0 * y[k]
+        Aty[1] += a1 * y[k]
+        Aty[2] += a2 * y[k]
+    AtA[1, 0], AtA[2, 0], AtA[2, 1] = AtA[0, 1], AtA[0, 2], AtA[1, 2]
+    return AtA, Aty
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _misfit(blurred: np.ndarray, at: np.ndarray, y: np.ndarray, levels: np.ndarray) -> float:
+    """The rms of the photograph's pixels `at` less the model's at `levels`."""
+    flat = blurred.reshape(-1, 3)
+    ss = 0.0
+    for k in range(len(at)):
+        m = levels[0] * flat[at[k], 0] + levels[1] * flat[at[k], 1] + levels[2] * flat[at[k], 2]
+        ss += (y[k] - m) ** 2
+    return math.sqrt(ss / len(at))
+
+
+def _fit_levels_at(y: np.ndarray, blurred: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, float]:
+    """`_fit_levels` on the pixels `at` of the blurred bases (h, w, 3), compiled."""
+    AtA, Aty = _normal_equations(blurred, at, y)
+    try:
+        levels = np.linalg.solve(AtA, Aty)
+    except np.linalg.LinAlgError:
+        levels = np.linalg.lstsq(AtA, Aty, rcond=None)[0]
+    return levels, _misfit(blurred, at, y, levels)
+
+
 def blur_bias(grey: np.ndarray, corners: np.ndarray, initial: np.ndarray, patterns: np.ndarray,
               quiet_zone: bool = True, rounds: int = 2, blur_px: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
@@ -209,17 +254,18 @@ def _bias_at(g: np.ndarray, seen: np.ndarray, corners: np.ndarray, initial: np.n
         else:
             trial = guess * np.linspace(*SIGMA_RANGE, SIGMA_STEPS)
         rms = []
-        three = np.moveaxis(base[:3], 0, 2)
+        three = np.ascontiguousarray(np.moveaxis(base[:3], 0, 2))
+        at = np.flatnonzero(mask)
         for sg in trial:
             blurred = cv2.GaussianBlur(three, (0, 0), sg, borderType=cv2.BORDER_REPLICATE)
-            rms.append(_fit_levels(y, blurred[mask].T.astype(np.float64))[1])
+            rms.append(_fit_levels_at(y, blurred, at)[1])
         j = int(np.clip(np.argmin(rms), 1, len(trial) - 2))
         a, b_, c = rms[j - 1], rms[j], rms[j + 1]
         den = a - 2 * b_ + c
         step = 0.5 * (a - c) / den if den > 0 else 0.0
         best = float(trial[j] + np.clip(step, -1, 1) * (trial[1] - trial[0]))
         blurred = cv2.GaussianBlur(three, (0, 0), best, borderType=cv2.BORDER_REPLICATE)
-        levels, misfit = _fit_levels(y, blurred[mask].T.astype(np.float64))
+        levels, misfit = _fit_levels_at(y, blurred, at)
         contrast = levels[1] - levels[0]
         if not (contrast > 0 and misfit <= MAX_MISFIT * contrast):
             continue                                    # not the tag the model draws: leave it as fitted
