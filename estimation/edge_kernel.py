@@ -14,7 +14,8 @@ come out in image pixels, the caller undistorts them (`tag_quads._undistort`), a
 fitted in a second call.
 
 Constants are passed in, not imported, so the kernel reads them from `tag_quads` where they are
-explained."""
+explained; CELLS, the tag's 8x8 grid, is written here too (`tag_quads` imports this module, not
+the other way round)."""
 
 from __future__ import annotations
 
@@ -59,18 +60,33 @@ def _lower_median(v: np.ndarray, use: np.ndarray, lo: int, hi: int, min_rows: in
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def tag_levels(g: np.ndarray, q: np.ndarray) -> tuple[float, float]:
-    """One tag's black and white (`tag_quads._tag_levels`): Otsu's two clusters of its 64 cell
-    centres, sampled through the homography of the unit square onto the quad (4, 2)."""
-    # the homography taking the unit square's corners (0,0), (1,0), (1,1), (0,1) to the quad's, in
-    # closed form (Heckbert 1989); `_unit_square_to_quads` solves the same 8x8 system numerically
+def square_to_quad(q: np.ndarray) -> np.ndarray:
+    """The homography taking the unit square's corners (0,0), (1,0), (1,1), (0,1) to the quad's
+    (4, 2), in closed form (Heckbert 1989): (h0..h7), x = (h0 u + h1 v + h2) / (h6 u + h7 v + 1),
+    y = (h3 u + h4 v + h5) / (the same); nan for a degenerate quad."""
     x0, y0, x1, y1, x2, y2, x3, y3 = q[0, 0], q[0, 1], q[1, 0], q[1, 1], q[2, 0], q[2, 1], q[3, 0], q[3, 1]
     sx, sy = x0 - x1 + x2 - x3, y0 - y1 + y2 - y3
     dx1, dx2, dy1, dy2 = x1 - x2, x3 - x2, y1 - y2, y3 - y2
     den = dx1 * dy2 - dx2 * dy1
     hg = (sx * dy2 - dx2 * sy) / den
     hh = (dx1 * sy - sx * dy1) / den
-    h = np.array([x1 - x0 + hg * x1, x3 - x0 + hh * x3, x0, y1 - y0 + hg * y1, y3 - y0 + hh * y3, y0, hg, hh])
+    return np.array([x1 - x0 + hg * x1, x3 - x0 + hh * x3, x0, y1 - y0 + hg * y1, y3 - y0 + hh * y3, y0, hg, hh])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def squares_to_quads(q: np.ndarray) -> np.ndarray:
+    """`square_to_quad` of every quad (N, 4, 2): (N, 8)."""
+    out = np.empty((q.shape[0], 8))
+    for k in range(q.shape[0]):
+        out[k] = square_to_quad(q[k])
+    return out
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def tag_levels(g: np.ndarray, q: np.ndarray) -> tuple[float, float]:
+    """One tag's black and white (`tag_quads._tag_levels`): Otsu's two clusters of its 64 cell
+    centres, sampled through the homography of the unit square onto the quad (4, 2)."""
+    h = square_to_quad(q)
     s = np.empty(CELLS * CELLS)
     for r in range(CELLS):
         for c in range(CELLS):

@@ -140,14 +140,17 @@ def _bases(shape: tuple[int, int], q: np.ndarray, pattern: np.ndarray, pad: int
 def _fit_levels(y: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, float]:
     """Black, white and background levels making the blurred bases' pixels (3, n) best match the
     photograph's (n,) (normal equations: three unknowns), and the rms of what is left."""
-    AtA = A @ A.T
-    Aty = A @ y
-    try:
-        levels = np.linalg.solve(AtA, Aty)
-    except np.linalg.LinAlgError:
-        levels = np.linalg.lstsq(AtA, Aty, rcond=None)[0]
+    levels = _solve_levels(A @ A.T, A @ y)
     r = y - levels @ A
     return levels, float(np.sqrt(np.mean(r * r)))
+
+
+def _solve_levels(AtA: np.ndarray, Aty: np.ndarray) -> np.ndarray:
+    """The levels from their normal equations (least squares where the bases are degenerate)."""
+    try:
+        return np.linalg.solve(AtA, Aty)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(AtA, Aty, rcond=None)[0]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -186,11 +189,7 @@ def _misfit(blurred: np.ndarray, at: np.ndarray, y: np.ndarray, levels: np.ndarr
 
 def _fit_levels_at(y: np.ndarray, blurred: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, float]:
     """`_fit_levels` on the pixels `at` of the blurred bases (h, w, 3), compiled."""
-    AtA, Aty = _normal_equations(blurred, at, y)
-    try:
-        levels = np.linalg.solve(AtA, Aty)
-    except np.linalg.LinAlgError:
-        levels = np.linalg.lstsq(AtA, Aty, rcond=None)[0]
+    levels = _solve_levels(*_normal_equations(blurred, at, y))
     return levels, _misfit(blurred, at, y, levels)
 
 

@@ -555,20 +555,14 @@ def code_bits(family: str = BASE) -> np.ndarray:
 
 def _unit_square_to_quads(q: np.ndarray, uv1: np.ndarray) -> np.ndarray:
     """Points (P, 3: u, v, 1) of the unit square mapped into every quad (N, 4, 2) by the homography
-    taking its corners (0,0), (1,0), (1,1), (0,1) to the quad's: (N, P, 2).  The homography in
-    closed form (Heckbert 1989), the same arithmetic as `edge_kernel.tag_levels`."""
-    x0, y0, x1, y1 = q[:, 0, 0, None], q[:, 0, 1, None], q[:, 1, 0, None], q[:, 1, 1, None]
-    x2, y2, x3, y3 = q[:, 2, 0, None], q[:, 2, 1, None], q[:, 3, 0, None], q[:, 3, 1, None]
-    sx, sy = x0 - x1 + x2 - x3, y0 - y1 + y2 - y3
-    dx1, dx2, dy1, dy2 = x1 - x2, x3 - x2, y1 - y2, y3 - y2
+    taking its corners (0,0), (1,0), (1,1), (0,1) to the quad's (`edge_kernel.square_to_quad`, the
+    one the compiled edge fit samples tags through): (N, P, 2)."""
+    h = edge_kernel.squares_to_quads(np.ascontiguousarray(q, dtype=np.float64))[:, :, None]
+    u, v = uv1[None, :, 0], uv1[None, :, 1]
     with np.errstate(divide="ignore", invalid="ignore"):     # a degenerate quad maps to nan
-        den = dx1 * dy2 - dx2 * dy1
-        hg = (sx * dy2 - dx2 * sy) / den
-        hh = (dx1 * sy - sx * dy1) / den
-        u, v = uv1[None, :, 0], uv1[None, :, 1]
-        X = (x1 - x0 + hg * x1) * u + (x3 - x0 + hh * x3) * v + x0
-        Y = (y1 - y0 + hg * y1) * u + (y3 - y0 + hh * y3) * v + y0
-        Z = hg * u + hh * v + 1.0
+        X = h[:, 0] * u + h[:, 1] * v + h[:, 2]
+        Y = h[:, 3] * u + h[:, 4] * v + h[:, 5]
+        Z = h[:, 6] * u + h[:, 7] * v + 1.0
         return np.stack([X / Z, Y / Z], axis=2)
 
 
