@@ -112,6 +112,75 @@ def corner_error(world_T_camera: np.ndarray, world_T_tag: np.ndarray, scale: flo
     return True
 
 
+@numba.njit(cache=True, fastmath=False, nogil=True)
+def view_errors(world_T_camera: np.ndarray, world_T_tags: np.ndarray, scales: np.ndarray, lens: np.ndarray,
+                cal: np.ndarray, c: np.ndarray, inverse_sigma: np.ndarray, huber_k: float, want_jacobians: bool,
+                e: np.ndarray, J: np.ndarray, columns: np.ndarray, ok: np.ndarray) -> int:
+    """`corner_error` for every tag one view reads, whitened (`whiten_rows`), into one factor's
+    error e (8 n,) and, with `want_jacobians`, its Jacobian J (8 n, columns; zero where a row's
+    tag is not the column's variable): the camera in columns 0-5; `columns[i]` = (first column of
+    tag i's pose (6), of its print scale (1; -1 for none)), `columns[n, 0]` the lens's (2; -1 for
+    none).  The intrinsics are fixed.  Returns how many tags have a corner not in front of the
+    camera (`ok[i]` False): their rows are left to the caller (`project_corners`' path)."""
+    JC, JT, Js, JK = np.empty((8, 6)), np.empty((8, 6)), np.empty((8, 1)), np.empty((8, 5))
+    ei = np.empty(8)
+    n = world_T_tags.shape[0]
+    lens_column = columns[n, 0]
+    missing = 0
+    for i in range(n):
+        ok[i] = corner_error(world_T_camera, world_T_tags[i], scales[i], lens, cal, c[i], want_jacobians, False,
+                             ei, JC, JT, Js, JK)
+        if not ok[i]:
+            missing += 1
+            continue
+        r0 = 8 * i
+        for r in range(8):
+            e[r0 + r] = ei[r]
+        if want_jacobians:
+            tc, sc = columns[i, 0], columns[i, 1]
+            for r in range(8):
+                for j in range(6):
+                    J[r0 + r, j] = JC[r, j]
+                    J[r0 + r, tc + j] = JT[r, j]
+                if sc >= 0:
+                    J[r0 + r, sc] = Js[r, 0]
+                if lens_column >= 0:
+                    J[r0 + r, lens_column] = c[i, MINUS_BASIS + 2 * r]
+                    J[r0 + r, lens_column + 1] = c[i, MINUS_BASIS + 2 * r + 1]
+        whiten_rows(e, J, r0, inverse_sigma[i], huber_k, want_jacobians)
+    return missing
+
+
+@numba.njit(cache=True, fastmath=False, nogil=True)
+def whiten_rows(e: np.ndarray, J: np.ndarray, r0: int, inverse_sigma: float, huber_k: float,
+                 want_jacobians: bool) -> None:
+    """One tag's 8 rows (from r0) as GTSAM whitens a corner factor with the noise
+    `Robust(Huber(huber_k), Isotropic(8, sigma))` (`huber_k` <= 0: no kernel): divided by sigma,
+    then, beyond k, scaled by sqrt(k / r) for a linearisation (GTSAM's block reweighting, r the
+    whitened 8-vector's norm), and for an error alone by sqrt(2 rho(r)) / r, so that the factor's
+    0.5 |e|^2 is the sum of its tags' Huber losses rho, as the single factors' GTSAM error is."""
+    norm2 = 0.0
+    for r in range(8):
+        e[r0 + r] *= inverse_sigma
+        norm2 += e[r0 + r] * e[r0 + r]
+    g = 1.0
+    if huber_k > 0.0:
+        norm = np.sqrt(norm2)
+        if norm > huber_k:
+            if want_jacobians:
+                g = np.sqrt(huber_k / norm)
+            else:
+                g = np.sqrt(2.0 * (huber_k * norm - 0.5 * huber_k * huber_k)) / norm
+    if g != 1.0:
+        for r in range(8):
+            e[r0 + r] *= g
+    if want_jacobians:
+        f = inverse_sigma * g
+        for r in range(8):
+            for j in range(J.shape[1]):
+                J[r0 + r, j] *= f
+
+
 def warm() -> None:
     """Load (or, the first time on a machine, compile) the kernel now: ~0.2 s from numba's cache,
     ~1 s to compile, which a graph pays at construction rather than in its first timed step.  The

@@ -40,6 +40,7 @@ import cv2
 import gtsam
 import numpy as np
 
+from estimation import levenberg_marquardt
 from estimation.fiducials import tag_object_points
 from estimation.rig_model import (AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT,
                                   RigGeometry, distortion_prior_sigmas, radial_basis,
@@ -207,8 +208,7 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
         params.setMaxIterations(max_iterations)
         params.setRelativeErrorTol(1e-8)
         params.setAbsoluteErrorTol(1e-10)
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        est = opt.optimize()
+        est, iterations = levenberg_marquardt.optimize(graph, values, params)
         # the lens distortion acts on the true camera's normalised coordinates: undistort again
         # through the intrinsics just estimated (0.25 % of focal length moves a corner at the
         # image edge by ~0.1 px, as much as the corner noise)
@@ -242,7 +242,7 @@ def solve_rig(views: Sequence[CalibrationView], geometry: RigGeometry, dist: np.
                                  repeatability_scale=repeat if measure_corner_sigma else float("nan"))
     problems = conditioning_problems(calibration, views, limits)
     return RigSolution(calibration, residuals, problems, {"world_T_base": B0, "platform_T_camera": M0},
-                       opt.iterations(), dropped, sigma, glue, tag_scale_sigma,
+                       iterations, dropped, sigma, glue, tag_scale_sigma,
                        repeat if measure_corner_sigma else float("nan"))
 
 

@@ -352,6 +352,107 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     return gtsam.CustomFactor(noise, keys, error)
 
 
+@dataclass(frozen=True)
+class CornerSighting:
+    """One tag's corners in one view, as `corner_factor` takes them (intrinsics fixed)."""
+
+    tag_key: int
+    scale_key: int | None
+    corners_px: np.ndarray            # (4, 2) undistorted, px
+    tag_corners_m: np.ndarray         # (4, 3) in the tag frame, nominal size
+    sigma_px: float
+    lens_basis: np.ndarray | None     # (8, 2) radial_basis of the corners, with the lens variable
+
+
+def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fixed: gtsam.Cal3_S2,
+                       robust_k: float | None, lens_key: int | None = None) -> gtsam.CustomFactor:
+    """The `corner_factor`s of one view's tags as one factor: the same error, the same whitened
+    Jacobians row for row (each tag's Huber kernel applied to its own 8 rows), so a solve of the
+    graph with it is the solve with the single factors (to round-off).  For the batch solve, whose
+    Levenberg-Marquardt calls every factor back at every linearisation and error evaluation: one
+    Python callback a view instead of one a tag, the tags' arithmetic in one compiled call
+    (`corner_kernel.view_errors`).  Not for iSAM2: a variable that moves past the threshold would
+    relinearise every tag of its views, and the factor ties the view's tags to each other in the
+    Bayes tree."""
+    n = len(sightings)
+    if n == 0 or any(s.lens_basis is not None for s in sightings) != (lens_key is not None):
+        raise ValueError("a view factor needs its sightings, and a lens key exactly when they carry a lens basis")
+    consts = np.array([corner_kernel.pack(s.corners_px, s.tag_corners_m,
+                                          None if s.lens_basis is None else -np.asarray(s.lens_basis, float))
+                       for s in sightings])
+    inverse_sigma = np.array([1.0 / s.sigma_px for s in sightings])
+    # the factor's columns: the camera (6), then each tag's pose (6) and print scale (1), the lens (2)
+    keys, widths = [camera_key], [6]
+    columns = np.full((n + 1, 2), -1, np.int64)
+    for i, s in enumerate(sightings):
+        columns[i, 0] = sum(widths)
+        keys.append(s.tag_key)
+        widths.append(6)
+        if s.scale_key is not None:
+            columns[i, 1] = sum(widths)
+            keys.append(s.scale_key)
+            widths.append(1)
+    if lens_key is not None:
+        columns[n, 0] = sum(widths)
+        keys.append(lens_key)
+        widths.append(2)
+    if len(set(keys)) != len(keys):
+        raise ValueError("a view factor reads each tag once")
+    starts = np.cumsum([0] + widths)
+    width = int(starts[-1])
+    cal = _cal_vector(fixed)
+    huber_k = float(robust_k) if robust_k else 0.0
+    tag_keys = [s.tag_key for s in sightings]
+    scale_keys = [(i, s.scale_key) for i, s in enumerate(sightings) if s.scale_key is not None]
+    world_T_tags = np.empty((n, 4, 4))
+    scales = np.zeros(n)
+    ok = np.empty(n, np.bool_)
+    view_errors = corner_kernel.view_errors
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
+        world_T_camera = values.atPose3(camera_key)
+        for i, key in enumerate(tag_keys):
+            world_T_tags[i] = values.atPose3(key).matrix()
+        for i, key in scale_keys:
+            scales[i] = values.atVector(key)[0]
+        d = _NO_LENS if lens_key is None else values.atVector(lens_key)
+        want = jacobians is not None
+        e = np.empty(8 * n)
+        J = np.zeros((8 * n, width)) if want else _J6
+        if view_errors(world_T_camera.matrix(), world_T_tags, scales, d, cal, consts, inverse_sigma, huber_k, want,
+                       e, J, columns, ok):
+            for i in np.flatnonzero(~ok):
+                _behind(sightings[i], world_T_camera, values.atPose3(tag_keys[i]), scales[i], d, cal, consts[i],
+                        columns[i], columns[n, 0], inverse_sigma[i], huber_k, e, J, 8 * i, want)
+        if want:
+            for j in range(len(keys)):
+                jacobians[j] = J[:, starts[j]:starts[j + 1]]
+        return e
+
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), keys, error)
+
+
+def _behind(s: CornerSighting, world_T_camera: Pose3, world_T_tag: Pose3, scale: float, d: np.ndarray,
+            cal: np.ndarray, consts: np.ndarray, columns: np.ndarray, lens_column: int, inverse_sigma: float,
+            huber_k: float, e: np.ndarray, J: np.ndarray, r0: int, want: bool) -> None:
+    """A view factor's rows of a tag with a corner on or behind the camera's plane: `corner_factor`'s
+    path for it (`project_corners`' large flat error, no gradient), whitened as the kernel's rows."""
+    local = np.asarray(s.tag_corners_m, float).reshape(4, 3)
+    minus_basis = consts[corner_kernel.MINUS_BASIS:].reshape(8, 2)
+    ei, JC, JT, _ = project_corners(world_T_camera, world_T_tag, (1.0 + scale) * local, cal,
+                                    np.asarray(s.corners_px, float).reshape(4, 2), want_jacobians=want)
+    rows = slice(r0, r0 + 8)
+    e[rows] = ei + minus_basis @ d if lens_column >= 0 else ei
+    if want:
+        J[rows, :6] = JC
+        J[rows, columns[0]:columns[0] + 6] = JT
+        if columns[1] >= 0:
+            J[rows, columns[1]] = (JT[:, 3:] * local.repeat(2, axis=0)).sum(axis=1)
+        if lens_column >= 0:
+            J[rows, lens_column:lens_column + 2] = minus_basis
+    corner_kernel.whiten_rows(e, J, r0, inverse_sigma, huber_k, want)
+
+
 @functools.lru_cache(maxsize=None)
 def _huber(k: float) -> gtsam.noiseModel.mEstimator.Base:
     """One Huber kernel per threshold, shared by the factors that use it (it holds only k)."""

@@ -39,9 +39,9 @@ import numpy as np
 
 from estimation.corner_noise import AbsoluteResiduals, CornerNoise
 from estimation.fiducials import Detection, tag_object_points
-from estimation import corner_kernel
+from estimation import corner_kernel, levenberg_marquardt
 from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
-                                  chain_factor, corner_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
+                                  CornerSighting, chain_factor, corner_factor, corner_view_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
                                   undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.core.geometry import Pose3, Rot3
@@ -195,6 +195,8 @@ class SfGraphSlam:
         # graph index and obliquity scale, and the face-on residuals of those evaluated so far
         # (graph index, obliquity scale, camera, tag, scale key, undistorted corners, tag corners, lens basis)
         self._corner_factors: list[tuple] = []
+        self._batch = gtsam.NonlinearFactorGraph()      # the batch solve's graph (`_batch_graph`), so far
+        self._batch_upto = self._batch_corners = 0
         self._residuals_done = 0
         self._face_on: list[np.ndarray] = []            # each solve's new face-on residuals (px)
         self._face_on_abs = AbsoluteResiduals()
@@ -402,8 +404,10 @@ class SfGraphSlam:
                 local = _tag_points(d.size_m)
                 self._add(corner_factor(ck, tk, u, local, c.corner_sigma_px * scale, robust_k=robust_k,
                                         fixed=self._cal, scale_key=sk, distortion=lens), spec)
+                # what the factor is built from, kept: the residual pass reads it, and the batch
+                # solve builds one factor a view from it (`_batch_graph`)
                 self._corner_factors.append((self.graph.size() - 1, scale, ck, tk, sk, u, local,
-                                             None if lens is None else lens[1]))
+                                             None if lens is None else lens[1], c.corner_sigma_px * scale, robust_k))
             else:
                 if c.observation == "corner-info":
                     gauss = self._corner_information(d, c.corner_sigma_px * scale)
@@ -743,11 +747,37 @@ class SfGraphSlam:
         params.setAbsoluteErrorTol(1e-9)
         self._initialise_pending()
         start = self.estimate if warm_start else self.initial
-        self.estimate = gtsam.LevenbergMarquardtOptimizer(self.graph, start, params).optimize()
+        self.estimate, _ = levenberg_marquardt.optimize(self._batch_graph(), start, params)
         # marginals must now come from this estimate (iSAM2 has not seen these factors)
         self._batch_solved = True
         self._batch_marginals = None
         return self.estimate
+
+    def _batch_graph(self) -> gtsam.NonlinearFactorGraph:
+        """The graph the batch solve takes: the run's graph with each view's corner factors as one
+        factor (`rig_model.corner_view_factor`: the same error and whitened Jacobians, so the same
+        solve to round-off).  Levenberg-Marquardt calls every Python factor back at each
+        linearisation and error evaluation; one callback a view instead of one a tag, and the
+        view's arithmetic in one compiled call, halve the 3x3x3 survey's batch solve
+        (docs/benchmarks.md, "Speed").  iSAM2 keeps the single factors (see the factor's note).
+        Kept between solves and extended by what was added since: a view's factors all come in
+        its `add_view`, and the graph only grows."""
+        if self._cal is None or self.config.observation != "corners":
+            return self.graph
+        corner = {f[0]: f for f in self._corner_factors[self._batch_corners:]}
+        views: dict[tuple[int, bool, float | None], list[CornerSighting]] = {}
+        for i in range(self._batch_upto, self.graph.size()):
+            f = corner.get(i)
+            if f is None:
+                self._batch.add(self.graph.at(i))
+                continue
+            _, _, ck, tk, sk, u, local, basis, sigma, robust_k = f
+            views.setdefault((ck, basis is not None, robust_k), []).append(CornerSighting(tk, sk, u, local, sigma, basis))
+        for (ck, lensed, robust_k), sightings in views.items():
+            self._batch.add(corner_view_factor(ck, sightings, self._cal, robust_k, DISTORTION if lensed else None))
+        self._batch_upto = self.graph.size()
+        self._batch_corners = len(self._corner_factors)
+        return self._batch
 
     def decide_relations_batch(self) -> int:
         """Batch counterpart of `update` for studies: solve, gate the relations, solve again."""

@@ -129,6 +129,9 @@ def measure(n: int, observation: str, seed: int, near_tags_per_view: int | None 
         gtsam.Marginals(slam.graph, slam.estimate)
         marginal_runs.append(time.perf_counter() - t0)
     batch_s = float(np.median(batch_runs)) * 1000 if batch_runs else None
+    # the first solve also builds the batch's view factors (`SfGraphSlam._batch_graph`: the corner
+    # model's per-view factors, kept for later solves): a one-off solve costs that, reported beside
+    batch_first = batch_runs[0] * 1000 if batch_runs else None
     all_marginals = float(np.median(marginal_runs)) * 1000 if marginal_runs else None
     return {"n": n, "observation": observation, "modules": len(model.modules), "tags": len(slam.tags),
             "factors": int(slam.graph.size()), "views": slam.n_views,
@@ -142,7 +145,7 @@ def measure(n: int, observation: str, seed: int, near_tags_per_view: int | None 
             # the step's work grows as the structure does
             "reeliminated_by_quarter": [float(np.median(q)) for q in np.array_split(np.array(reeliminated, float), 4)
                                         if len(q)],
-            "batch_ms": batch_s, "marginals_factorisation_ms": all_marginals}
+            "batch_ms": batch_s, "batch_first_ms": batch_first, "marginals_factorisation_ms": all_marginals}
 
 
 def growth(rows: list[dict], key: str, against: str = "tags") -> float | None:
@@ -291,13 +294,13 @@ def linearisation_costs(repeats: int = 300) -> dict[str, float]:
 def speed(quick: bool = False, seed: int = 0) -> dict:
     """The speed figures of issue 21 on the scaling study's surveys (`measure`): a 3x3x3 run and
     an 8x8x8 study (N = 5 with `quick`), each step and the full batch solve in the run's own
-    observation model (`corners`: the Python corner factor; at N = 8 its batch takes minutes and
-    is not timed, its steps are) and in `corner-info` (every factor in C++: the floor compiled factors would reach,
+    observation model (`corners`: the Python corner factor, one factor a view in the batch) and in
+    `corner-info` (every factor in C++: the floor compiled factors would reach,
     bookkeeping included); the iSAM2 update alone (`solver_*`) is the floor without the
     estimator's Python bookkeeping around it."""
     large = 5 if quick else 8
     rows = [_median_survey(3, seed, SMALL_SURVEYS), measure(3, "corner-info", seed),
-            measure(large, "corner-info", seed), measure(large, "corners", seed, batch=False)]
+            measure(large, "corner-info", seed), measure(large, "corners", seed)]
     return {"rows": rows, "large_n": large, "linearisation_us": linearisation_costs()}
 
 
@@ -311,9 +314,8 @@ def _median_survey(n: int, seed: int, surveys: int) -> dict:
     """`measure(n, "corners", seed)` `surveys` times; the row of the survey whose step median is
     the median, with every survey's step median (`step_median_ms_surveys`) beside it."""
     rows = [measure(n, "corners", seed, batch=(i == 0)) for i in range(surveys)]
-    batch_ms = rows[0]["batch_ms"]
     order = sorted(range(surveys), key=lambda i: rows[i]["step_median_ms"])
-    row = dict(rows[order[surveys // 2]], batch_ms=batch_ms)
+    row = dict(rows[order[surveys // 2]], batch_ms=rows[0]["batch_ms"], batch_first_ms=rows[0]["batch_first_ms"])
     row["step_median_ms_surveys"] = [rows[i]["step_median_ms"] for i in order]
     return row
 
@@ -343,10 +345,17 @@ def speed_markdown(res: dict) -> list[str]:
         run, cpp = by.get((n, "corners")), by[(n, "corner-info")]
         met = "–"
         if target:
-            met = ("yes" if run and run["batch_ms"] is not None and run["batch_ms"] <= target else
+            # judged on the first solve, which builds the view factors: what a one-off batch costs
+            first = run and (run.get("batch_first_ms") if run.get("batch_first_ms") is not None else run["batch_ms"])
+            met = ("yes" if first is not None and first <= target else
                    ("C++ model only" if cpp["batch_ms"] <= target else "**no**"))
-        lines.append(f"| full batch LM, {n}×{n}×{n} (ms) | {'≤ %g' % target if target else '–'} | "
-                     f"{'%.0f' % run['batch_ms'] if run and run['batch_ms'] is not None else 'not run (minutes)'} | {cpp['batch_ms']:.0f} | – | {met} |")
+        run_s = "not run"
+        if run and run["batch_ms"] is not None:
+            run_s = f"{run['batch_ms']:.0f}"
+            if run.get("batch_first_ms") is not None:
+                run_s += f" (the first solve, building its view factors: {run['batch_first_ms']:.0f})"
+        lines.append(f"| full batch LM, {n}×{n}×{n} (ms) | {'≤ %g' % target if target else '–'} | {run_s} | "
+                     f"{cpp['batch_ms']:.0f} | – | {met} |")
     lines.append("")
     lines.append("Variables a step's updates re-eliminate, median by quarter of the survey: " + "; ".join(
         f"{r['n']}×{r['n']}×{r['n']} `{r['observation']}` " + " / ".join(f"{x:.0f}" for x in r["reeliminated_by_quarter"])
