@@ -182,8 +182,8 @@ def whiten_rows(e: np.ndarray, J: np.ndarray, r0: int, inverse_sigma: float, hub
 
 
 def warm() -> None:
-    """Load (or, the first time on a machine, compile) the kernel now: ~0.2 s from numba's cache,
-    ~1 s to compile, which a graph pays at construction rather than in its first timed step.  The
+    """Load (or, the first time on a machine, compile) the kernels now: ~0.2 s from numba's cache,
+    ~2 s to compile, which a graph pays at construction rather than in its first timed step.  The
     poses in the column-major layout `gtsam.Pose3.matrix()` hands out: numba compiles once per
     array layout."""
     eye = np.asfortranarray(np.eye(4))
@@ -195,3 +195,10 @@ def warm() -> None:
     for want_calibration in (False, True):
         corner_error(eye, tag, 0.0, np.zeros(2), cal, c, True, want_calibration, np.empty(8), np.empty((8, 6)),
                      np.empty((8, 6)), np.empty((8, 1)), np.empty((8, 5)))
+    # a batch solve's view factor (`rig_model.corner_view_factor`), with and without Jacobians
+    tags = np.empty((1, 4, 4))
+    tags[0] = tag
+    columns = np.array([[6, 12], [-1, -1]], np.int64)
+    for want in (False, True):
+        view_errors(eye, tags, np.zeros(1), np.zeros(2), cal, c[None, :], np.ones(1), 1.0, want, np.empty(8),
+                    np.zeros((8, 13)), columns, np.empty(1, np.bool_))
