@@ -158,8 +158,9 @@ def growth(rows: list[dict], key: str, against: str = "tags") -> float | None:
 
 
 def study(sizes=SIZES, observations=("corner-info", "corners"), seed: int = 0, max_corner_n: int = 6) -> dict:
-    """`corners` (a Python factor per sighting) stops at `max_corner_n`: past it a batch solve
-    takes minutes, which is the finding."""
+    """`corners` (the run's Python corner factor) stops at `max_corner_n`: its batch solve grew to
+    seconds past it (minutes before the batch took one factor a view and its callbacks stopped
+    copying the values: docs/benchmarks.md, "Speed")."""
     out: dict = {"sizes": list(sizes), "rows": {}, "growth": {}}
     for obs in observations:
         rows = [measure(n, obs, seed) for n in sizes if obs != "corners" or n <= max_corner_n]
