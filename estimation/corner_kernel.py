@@ -181,6 +181,89 @@ def whiten_rows(e: np.ndarray, J: np.ndarray, r0: int, inverse_sigma: float, hub
                 J[r0 + r, j] *= f
 
 
+@numba.njit(cache=True, fastmath=False, nogil=True)
+def tag_step(camera_T_structure: np.ndarray, structure_T_tag: np.ndarray, scale: float, nominal: np.ndarray,
+             target: np.ndarray, weight: np.ndarray, cal: np.ndarray, scale_sigma: float, step: np.ndarray) -> bool:
+    """One Gauss-Newton step of `rig_model.refine_tag_pose`: the tag's (and with `scale_sigma` > 0
+    its print scale's) normal equations over every view's four corners, solved, into `step` (6 or
+    7: GTSAM's tangent, rotation first, then the scale).  `camera_T_structure` (n, 4, 4) the views,
+    `nominal` (4, 3) the corners in the tag frame as designed, `target` (n, 4, 2) the measured
+    corners less the principal point (and the lens correction), `weight` (n,) 1/sigma of each
+    view.  False, with nothing solved, if a corner is not in front of a camera."""
+    fx, fy, sk = cal[0], cal[1], cal[2]
+    k = 7 if scale_sigma > 0.0 else 6
+    H = np.zeros((k, k))
+    g = np.zeros(k)
+    a = np.empty(7)
+    m = np.empty((3, 4))
+    grow = 1.0 + scale
+    for v in range(camera_T_structure.shape[0]):
+        for i in range(3):
+            for j in range(4):
+                m[i, j] = (camera_T_structure[v, i, 0] * structure_T_tag[0, j]
+                           + camera_T_structure[v, i, 1] * structure_T_tag[1, j]
+                           + camera_T_structure[v, i, 2] * structure_T_tag[2, j]
+                           + camera_T_structure[v, i, 3] * structure_T_tag[3, j])
+        w = weight[v]
+        for c in range(4):
+            p0, p1, p2 = grow * nominal[c, 0], grow * nominal[c, 1], grow * nominal[c, 2]
+            qx = m[0, 0] * p0 + m[0, 1] * p1 + m[0, 2] * p2 + m[0, 3]
+            qy = m[1, 0] * p0 + m[1, 1] * p1 + m[1, 2] * p2 + m[1, 3]
+            qz = m[2, 0] * p0 + m[2, 1] * p1 + m[2, 2] * p2 + m[2, 3]
+            if qz <= 0.0:
+                return False
+            iz = 1.0 / qz
+            x, y = qx * iz, qy * iz
+            uv = (x * fx + y * sk, y * fy)
+            for r in range(2):
+                # d(pixel r) / d(point in the camera frame), then through R
+                j0 = (fx if r == 0 else 0.0) * iz
+                j1 = (sk if r == 0 else fy) * iz
+                j2 = -uv[r] * iz
+                J0 = j0 * m[0, 0] + j1 * m[1, 0] + j2 * m[2, 0]
+                J1 = j0 * m[0, 1] + j1 * m[1, 1] + j2 * m[2, 1]
+                J2 = j0 * m[0, 2] + j1 * m[1, 2] + j2 * m[2, 2]
+                # a right perturbation (w, v) of the tag moves the corner by R (v - p x w)
+                a[0] = (p1 * J2 - p2 * J1) * w
+                a[1] = (p2 * J0 - p0 * J2) * w
+                a[2] = (p0 * J1 - p1 * J0) * w
+                a[3], a[4], a[5] = J0 * w, J1 * w, J2 * w
+                a[6] = (J0 * nominal[c, 0] + J1 * nominal[c, 1] + J2 * nominal[c, 2]) * w
+                e = (uv[r] - target[v, c, r]) * w
+                for i in range(k):
+                    g[i] += a[i] * e
+                    for j in range(k):
+                        H[i, j] += a[i] * a[j]
+    if k == 7:
+        H[6, 6] += 1.0 / scale_sigma ** 2
+        g[6] += scale / scale_sigma ** 2
+    # H is symmetric positive definite: Cholesky, then the two triangular solves of H step = -g
+    L = np.zeros((k, k))
+    for i in range(k):
+        for j in range(i + 1):
+            t = H[i, j]
+            for q in range(j):
+                t -= L[i, q] * L[j, q]
+            if i == j:
+                if t <= 0.0:
+                    return False
+                L[i, i] = np.sqrt(t)
+            else:
+                L[i, j] = t / L[j, j]
+    y = np.empty(k)
+    for i in range(k):
+        t = -g[i]
+        for q in range(i):
+            t -= L[i, q] * y[q]
+        y[i] = t / L[i, i]
+    for i in range(k - 1, -1, -1):
+        t = y[i]
+        for q in range(i + 1, k):
+            t -= L[q, i] * step[q]
+        step[i] = t / L[i, i]
+    return True
+
+
 def warm() -> None:
     """Load (or, the first time on a machine, compile) the kernels now: ~0.2 s from numba's cache,
     ~2 s to compile, which a graph pays at construction rather than in its first timed step.  The
@@ -202,3 +285,7 @@ def warm() -> None:
     for want in (False, True):
         view_errors(eye, tags, np.zeros(1), np.zeros(2), cal, c[None, :], np.ones(1), 1.0, want, np.empty(8),
                     np.zeros((8, 13)), columns, np.empty(1, np.bool_))
+    # a new tag's refined start (`rig_model.refine_tag_pose`), the tag as `Pose3.matrix()` gives it
+    camera_T_structure = np.empty((1, 4, 4))
+    camera_T_structure[0] = np.eye(4)
+    tag_step(camera_T_structure, tag, 0.0, local, np.zeros((1, 4, 2)), np.ones(1), cal, 0.001, np.empty(7))

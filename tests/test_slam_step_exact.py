@@ -11,7 +11,8 @@ import pytest
 
 from estimation.fiducials import Detection, tag_object_points
 from estimation.rig_model import (AXIS, BASE, DISTORTION, GAUGE_SIGMA, MOUNT, RigGeometry, ViewMotion, _cal_vector,
-                                  cal3_s2, corner_factor, project_corners, radial_basis, refine_tag_pose)
+                                  _refine_tag_pose_numpy, cal3_s2, corner_factor, project_corners, radial_basis,
+                                  refine_tag_pose)
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
 from lab.core.config import load_rig
 from lab.core.geometry import Pose3, Rot3
@@ -102,6 +103,38 @@ def test_the_fast_corner_factor_gives_the_reference_factors_error_and_estimate()
     assert est.atVector(S(0))[0] == pytest.approx(ref.atVector(S(0))[0], abs=1e-9)
     # the tag moved: the comparison is of a solve, not of the start
     assert np.abs(est.atPose3(T(0)).translation() - values.atPose3(T(0)).translation()).max() > 1e-4
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("scale_sigma", [0.0, 0.001])
+@pytest.mark.parametrize("lens", [False, True])
+def test_the_compiled_refinement_is_the_numpy_one(seed, scale_sigma, lens):
+    """`refine_tag_pose`'s compiled steps (`corner_kernel.tag_step`) against its numpy form, step
+    for step: the same pose and scale to round-off, from a start a degree and centimetres off, with
+    and without the print scale and the lens term, each view its own sigma."""
+    tag, cams, local, meas = _small_survey(seed)
+    rng = np.random.default_rng(seed)
+    start = tag.retract(rng.normal(0.0, 0.02, 6))
+    cal = _cal_vector(cal3_s2(K))
+    sigmas = np.array([0.05, 0.07, 0.1])
+    lens_term = (np.array([radial_basis(uv, K) for uv in meas]), np.array([2e-3, -3e-4])) if lens else None
+    for iterations in (1, 5):
+        a = refine_tag_pose(start, cams, np.array(meas), local, cal, sigmas, 0.0005, lens_term, scale_sigma,
+                            iterations=iterations)
+        b = _refine_tag_pose_numpy(start, cams, np.array(meas), local, cal, sigmas, 0.0005, lens_term, scale_sigma,
+                                   iterations=iterations)
+        assert np.abs(a[0].translation() - b[0].translation()).max() < 1e-12
+        assert np.abs(gtsam.Rot3.Logmap(a[0].rotation().between(b[0].rotation()))).max() < 1e-12
+        assert a[1] == pytest.approx(b[1], abs=1e-15)
+        assert np.abs(a[0].translation() - start.translation()).max() > 1e-3     # it did move
+
+
+def test_a_refinement_with_a_camera_behind_the_tag_stays_where_it_started():
+    tag, cams, local, meas = _small_survey(0)
+    behind = tag.compose(Pose3(Rot3(), np.array([0.0, 0.0, 0.5])))        # looking away from the tag
+    got, scale = refine_tag_pose(tag, cams + [behind], np.array(meas + [meas[0]]), local, _cal_vector(cal3_s2(K)),
+                                 np.full(4, 0.05))
+    assert got.equals(tag, 0.0) and scale == 0.0
 
 
 def test_a_tag_refined_against_fixed_cameras_is_the_least_squares_tag():
