@@ -181,7 +181,7 @@ class SfGraphSlam:
         self.observations: dict[int, int] = {}           # tag -> number of views that saw it
         self.relations: dict[tuple[int, int], RelationState] = {
             (r.a, r.b): RelationState(r.a, r.b, r.kind) for r in model.relations}
-        self.estimate = gtsam.Values()
+        self._estimate: gtsam.Values | None = gtsam.Values()   # None: iSAM2's, not yet computed (`estimate`)
         self._batch_solved = False                       # the estimate came from solve_batch, not iSAM2
         self._batch_marginals: gtsam.Marginals | None = None
         # iSAM2 marginal blocks of the current estimate, (key, key) -> block, from one joint
@@ -292,8 +292,8 @@ class SfGraphSlam:
     def predicted_camera(self, motion: ViewMotion) -> Pose3:
         """structure_T_camera for a view from the current calibration estimate."""
         assert self.rig is not None
-        lift = self.estimate.atPose3(LIFT) if self.estimate.exists(LIFT) else self.rig.lift_prior()[0]
-        return self.rig.predict(motion, *(self.estimate.atPose3(k) for k in (AXIS, BASE, MOUNT)), lift)
+        lift = self._pose(LIFT) if self._exists(LIFT) else self.rig.lift_prior()[0]
+        return self.rig.predict(motion, *(self._pose(k) for k in (AXIS, BASE, MOUNT)), lift)
 
     def _lift_prior(self) -> None:
         """The lift's axis joins the graph with the first view taken off the lift's zero: a run
@@ -500,13 +500,13 @@ class SfGraphSlam:
         tag = key - _T(0)
         scale_key = _S(tag % GENERATION)
         scale, scale_sigma = 0.0, 0.0
-        if self.estimate.exists(scale_key):
-            scale = float(self.estimate.atVector(scale_key)[0])         # a re-placed tag's print: as measured
+        if self._exists(scale_key):
+            scale = float(self._vector(scale_key)[0])         # a re-placed tag's print: as measured
         elif self._new_values.exists(scale_key):
             scale_sigma = self.config.tag_scale_sigma                    # new: refined under its prior
         lens = None
         if all(s[4] is not None for s in sightings):
-            d = (self.estimate if self.estimate.exists(DISTORTION) else self._new_values).atVector(DISTORTION)
+            d = self._vector(DISTORTION) if self._exists(DISTORTION) else self._new_values.atVector(DISTORTION)
             lens = (np.array([s[4] for s in sightings]), d)
         cal = np.array([self._cal.fx(), self._cal.fy(), self._cal.skew(), self._cal.px(), self._cal.py()])
         pose, scale = refine_tag_pose(start, [s[0] for s in sightings], np.array([s[2] for s in sightings]),
@@ -687,7 +687,7 @@ class SfGraphSlam:
                                  constrainedKeys=self._last_groups(False), noRelinKeys=linear)
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
-        self.estimate = self.isam.calculateEstimate()
+        self._estimate = None
         self._batch_solved = False
         self._batch_marginals = None
         self._cov_blocks = {}
@@ -703,13 +703,13 @@ class SfGraphSlam:
         if not todo:
             return
         self._residuals_done = len(self._corner_factors)
-        est = self.estimate
-        todo = [f for f in todo if est.exists(f[2]) and est.exists(f[3]) and (f[4] is None or est.exists(f[4]))
-                and (f[7] is None or est.exists(DISTORTION))]
+        exists, pose = self._exists, self._pose
+        todo = [f for f in todo if exists(f[2]) and exists(f[3]) and (f[4] is None or exists(f[4]))
+                and (f[7] is None or exists(DISTORTION))]
         if todo:
             assert self._cal is not None
-            m = np.array([est.atPose3(f[2]).between(est.atPose3(f[3])).matrix() for f in todo])     # (n, 4, 4)
-            k = np.array([1.0 if f[4] is None else 1.0 + float(est.atVector(f[4])[0]) for f in todo])
+            m = np.array([pose(f[2]).between(pose(f[3])).matrix() for f in todo])                   # (n, 4, 4)
+            k = np.array([1.0 if f[4] is None else 1.0 + float(self._vector(f[4])[0]) for f in todo])
             local = np.array([f[6] for f in todo]) * k[:, None, None]                              # (n, 4, 3)
             q = local @ np.swapaxes(m[:, :3, :3], 1, 2) + m[:, None, :3, 3]
             z = q[..., 2]
@@ -725,7 +725,7 @@ class SfGraphSlam:
             e = e.reshape(len(todo), 8)
             lensed = [i for i, f in enumerate(todo) if f[7] is not None]
             if lensed:
-                e[lensed] -= np.array([todo[i][7] for i in lensed]) @ est.atVector(DISTORTION)
+                e[lensed] -= np.array([todo[i][7] for i in lensed]) @ self._vector(DISTORTION)
             scales = np.array([f[1] for f in todo])
             face_on = (e / scales[:, None]).ravel()
             self._face_on.append(face_on)
@@ -974,7 +974,7 @@ class SfGraphSlam:
             hold.push_back(key)
         self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], constrainedKeys=groups, noRelinKeys=hold,
                          extraReelimKeys=extra)
-        self.estimate = self.isam.calculateEstimate()
+        self._estimate = None
         self._tag_estimates = None
 
     def _relative_covariance(self, a: int, b: int) -> np.ndarray | None:
@@ -1003,11 +1003,36 @@ class SfGraphSlam:
         return 0.5 * (cov + cov.T) + np.eye(6) * 1e-12
 
     # ---- results ---------------------------------------------------------------------------------
+    @property
+    def estimate(self) -> gtsam.Values:
+        """Every variable's current estimate: iSAM2's, computed on the first read after a solve
+        (a Values of every variable of the run, ~1 ms at 3,000), or the batch solve's."""
+        if self._estimate is None:
+            self._estimate = self.isam.calculateEstimate()
+        return self._estimate
+
+    @estimate.setter
+    def estimate(self, values: gtsam.Values) -> None:
+        self._estimate = values
+
+    # One variable's estimate without computing every variable's: what a step reads after its solve
+    # (its new factors' residuals, the verdict's tags, the next view's rig) is a few dozen of the
+    # run's thousands.  iSAM2's value of one key is the same retraction of the same delta,
+    # bit for bit.
+    def _pose(self, key: int) -> Pose3:
+        return self.isam.calculateEstimatePose3(key) if self._estimate is None else self._estimate.atPose3(key)
+
+    def _vector(self, key: int) -> np.ndarray:
+        return self.isam.calculateEstimateVector(key) if self._estimate is None else self._estimate.atVector(key)
+
+    def _exists(self, key: int) -> bool:
+        return self.isam.valueExists(key) if self._estimate is None else self._estimate.exists(key)
+
     def tag_pose(self, tag: int) -> Pose3:
-        return self.estimate.atPose3(self.key(tag))
+        return self._pose(self.key(tag))
 
     def has_tag(self, tag: int) -> bool:
-        return self.estimate.exists(self.key(tag))
+        return self._exists(self.key(tag))
 
     def tag_covariance(self, tag: int) -> np.ndarray:
         """Marginal covariance of a tag pose from the solver that made the current estimate, scaled
@@ -1059,7 +1084,7 @@ class SfGraphSlam:
         return out
 
     def camera_pose(self, k: int) -> Pose3:
-        return self.estimate.atPose3(C(k))
+        return self._pose(C(k))
 
     def tag_estimates(self) -> dict[int, Pose3]:
         # read by tag elimination, the structure check and the log after every step: once per estimate
