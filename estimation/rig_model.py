@@ -526,11 +526,7 @@ def refine_tag_pose(structure_T_tag: Pose3, cameras: Sequence[Pose3], corners_px
     cal = np.asarray(cal, float)
     n = len(cameras)
     nominal = np.array(local, float).reshape(4, 3)           # a writable copy: numba types a read-only array apart
-    target = np.asarray(corners_px, float).reshape(n, 4, 2) - cal[3:5]
-    if lens is not None:
-        bases, d = lens
-        target = target - (np.asarray(bases) @ np.asarray(d, float)).reshape(n, 4, 2)
-    target = np.ascontiguousarray(target)
+    target = _refine_target(corners_px, cal, lens, n)
     weight = 1.0 / np.asarray(sigmas_px, float)
     camera_T_structure = np.array([c.inverse().matrix() for c in cameras])
     step = np.empty(7 if scale_sigma > 0 else 6)
@@ -539,12 +535,27 @@ def refine_tag_pose(structure_T_tag: Pose3, cameras: Sequence[Pose3], corners_px
         if not corner_kernel.tag_step(camera_T_structure, tag.matrix(), scale, nominal, target, weight, cal,
                                       scale_sigma, step):
             break
-        tag = tag.retract(step[:6])
-        if scale_sigma > 0:
-            scale += float(step[6])
-        if np.abs(step).max() < tolerance:    # what is left is of the order of its square
+        tag, scale, done = _take_step(tag, scale, step, tolerance)
+        if done:
             break
     return tag, scale
+
+
+def _refine_target(corners_px: np.ndarray, cal: np.ndarray, lens: tuple | None, n: int) -> np.ndarray:
+    """`refine_tag_pose`'s measured corners (n, 4, 2) less the principal point and the lens correction."""
+    target = np.asarray(corners_px, float).reshape(n, 4, 2) - np.asarray(cal, float)[3:5]
+    if lens is not None:
+        bases, d = lens
+        target = target - (np.asarray(bases) @ np.asarray(d, float)).reshape(n, 4, 2)
+    return np.ascontiguousarray(target)
+
+
+def _take_step(tag: Pose3, scale: float, step: np.ndarray, tolerance: float) -> tuple[Pose3, float, bool]:
+    """A Gauss-Newton step (6, or 7 with the print scale) applied; True once it is below `tolerance`:
+    what is left is of the order of its square."""
+    if len(step) == 7:
+        scale += float(step[6])
+    return tag.retract(step[:6]), scale, bool(np.abs(step).max() < tolerance)
 
 
 def _refine_tag_pose_numpy(structure_T_tag: Pose3, cameras: Sequence[Pose3], corners_px: np.ndarray, local: np.ndarray,
@@ -552,14 +563,11 @@ def _refine_tag_pose_numpy(structure_T_tag: Pose3, cameras: Sequence[Pose3], cor
                     scale_sigma: float = 0.0, iterations: int = 5, tolerance: float = 1e-8) -> tuple[Pose3, float]:
     """`refine_tag_pose` in numpy, one array pass a step: the readable form, and the reference the
     compiled step is tested against (tests/test_slam_step_exact.py)."""
-    fx, fy, sk, u0, v0 = (float(c) for c in cal)
+    fx, fy, sk = (float(c) for c in cal[:3])
     to_px = np.array([[fx, 0.0], [sk, fy]])
     n = len(cameras)
     nominal_rows = np.repeat(np.asarray(local, float).reshape(4, 3), 2, axis=0)      # (8, 3)
-    target = np.asarray(corners_px, float).reshape(n, 4, 2) - np.array([u0, v0])
-    if lens is not None:
-        bases, d = lens
-        target = target - (np.asarray(bases) @ np.asarray(d, float)).reshape(n, 4, 2)
+    target = _refine_target(corners_px, cal, lens, n)
     w = (1.0 / np.asarray(sigmas_px, float)).repeat(8)
     camera_T_structure = np.array([c.inverse().matrix() for c in cameras])
     after, before = [1, 2, 0], [2, 0, 1]
@@ -591,10 +599,8 @@ def _refine_tag_pose_numpy(structure_T_tag: Pose3, cameras: Sequence[Pose3], cor
             H[6, 6] += 1.0 / scale_sigma ** 2
             g[6] += scale / scale_sigma ** 2
         step = np.linalg.solve(H, -g)
-        tag = tag.retract(step[:6])
-        if scale_sigma > 0:
-            scale += float(step[6])
-        if np.abs(step).max() < tolerance:    # what is left is of the order of its square
+        tag, scale, done = _take_step(tag, scale, step, tolerance)
+        if done:
             break
     return tag, scale
 
