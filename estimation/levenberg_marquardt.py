@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
@@ -37,22 +38,24 @@ import numpy as np
 MIN_MODEL_FIDELITY = 1e-3
 
 
-def optimize(graph: gtsam.NonlinearFactorGraph, start: gtsam.Values,
-             params: gtsam.LevenbergMarquardtParams) -> tuple[gtsam.Values, int]:
+def optimize(graph: gtsam.NonlinearFactorGraph, start: gtsam.Values, params: gtsam.LevenbergMarquardtParams,
+             reads: Callable[[gtsam.Values], None] | None = None) -> tuple[gtsam.Values, int]:
     """Levenberg-Marquardt from `start`: GTSAM's `optimize()`, step for step.  Returns the solution
-    and the number of iterations."""
+    and the number of iterations.  `reads` is called with every values the graph is about to be
+    evaluated at (its factors' bulk reads, `rig_model.PoseTable.load`); not with settings that go
+    to GTSAM's optimizer, whose values Python never sees."""
     if (params.getDiagonalDamping() or not params.getUseFixedLambdaFactor() or params.getOrderingType() != "COLAMD"
             or params.getLinearSolverType() != "MULTIFRONTAL_CHOLESKY"):
         return _gtsam_optimize(graph, start, params)
-    state = run(graph, start, params)
+    state = run(graph, start, params, reads)
     return state.values, state.iterations
 
 
-def run(graph: gtsam.NonlinearFactorGraph, start: gtsam.Values,
-        params: gtsam.LevenbergMarquardtParams) -> State:
+def run(graph: gtsam.NonlinearFactorGraph, start: gtsam.Values, params: gtsam.LevenbergMarquardtParams,
+        reads: Callable[[gtsam.Values], None] | None = None) -> State:
     """`NonlinearOptimizer::defaultOptimize` over `State`; the final state (`optimize`'s
     parameters only)."""
-    state = State(graph, start, params)
+    state = State(graph, start, params, reads)
     new_error = state.error
     if new_error <= params.getErrorTol() or state.iterations >= params.getMaxIterations():
         return state
@@ -70,10 +73,12 @@ class State:
     its factor, and the counts GTSAM keeps (`iterations`, `inner`: every lambda tried)."""
 
     def __init__(self, graph: gtsam.NonlinearFactorGraph, start: gtsam.Values,
-                 params: gtsam.LevenbergMarquardtParams) -> None:
+                 params: gtsam.LevenbergMarquardtParams, reads: Callable[[gtsam.Values], None] | None = None) -> None:
         self.graph = graph
         self.params = params
+        self.reads = reads
         self.values = gtsam.Values(start)
+        self._read(self.values)
         self.error = graph.error(self.values)
         self.lam: float = params.getlambdaInitial()
         self.factor = params.getlambdaFactor()
@@ -84,7 +89,12 @@ class State:
         self._dims = [(k, zero.at(k).shape[0]) for k in sorted(self.values.keys())]
         self._damping: dict[float, gtsam.GaussianFactorGraph] = {}
 
+    def _read(self, values: gtsam.Values) -> None:
+        if self.reads is not None:
+            self.reads(values)
+
     def iterate(self) -> None:
+        self._read(self.values)
         linear = self.graph.linearize(self.values)
         while not self._try_lambda(linear):
             pass
@@ -123,6 +133,7 @@ class State:
             linear_change = old_linear - linear.error(delta)
             if linear_change >= 0:
                 new_values = self.values.retract(delta)
+                self._read(new_values)
                 new_error = self.graph.error(new_values)
                 change = self.error - new_error
                 if linear_change > sys.float_info.epsilon * old_linear:

@@ -364,8 +364,52 @@ class CornerSighting:
     lens_basis: np.ndarray | None     # (8, 2) radial_basis of the corners, with the lens variable
 
 
+class PoseTable:
+    """Every pose of one `gtsam.Values` as an (n, 4, 4) array, read in one call
+    (`gtsam.utilities.extractPose3`), for factors that read many poses a callback.
+
+    A view factor reads its camera and each of its tags, two pybind11 calls a pose (~1 us each):
+    in an 8x8x8 batch solve, 62,000 reads.  The optimizer `load`s each values it is about to
+    evaluate the graph at; a factor given the table reads from it only when the values it is called
+    with *are* the loaded ones (the same Python object: GTSAM passes the caller's wrapper through),
+    and reads the values itself otherwise, so a stale or foreign table can cost time, never
+    correctness.  The values must not change while loaded (an optimizer's do not).  `track` fixes
+    which poses the table holds (a solve's start); a factor re-reads its rows when that changes."""
+
+    def __init__(self) -> None:
+        self.keys = np.zeros(0, np.uint64)
+        self.row: dict[int, int] = {}
+        self.generation = 0
+        self.values: gtsam.Values | None = None
+        self.poses = np.zeros((0, 4, 4))
+
+    def track(self, values: gtsam.Values) -> None:
+        """Hold the poses of `values` (their keys, in `extractPose3`'s order) from now on."""
+        keys = np.array(gtsam.utilities.allPose3s(values).keys(), dtype=np.uint64)
+        self.values = None
+        if not np.array_equal(keys, self.keys):
+            self.keys = keys
+            self.row = {int(k): i for i, k in enumerate(keys)}
+            self.generation += 1
+            self.poses = np.zeros((len(keys), 4, 4))
+            self.poses[:, 3, 3] = 1.0
+
+    def load(self, values: gtsam.Values) -> None:
+        """Read every pose of `values`, which hold the tracked poses."""
+        flat = gtsam.utilities.extractPose3(values)
+        if flat.shape[0] != len(self.keys):
+            raise ValueError(f"a pose table of {len(self.keys)} poses loaded with values holding {flat.shape[0]}")
+        self.poses[:, :3, :3] = flat[:, :9].reshape(-1, 3, 3)
+        self.poses[:, :3, 3] = flat[:, 9:]
+        self.values = values
+
+    def clear(self) -> None:
+        self.values = None
+
+
 def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fixed: gtsam.Cal3_S2,
-                       robust_k: float | None, lens_key: int | None = None) -> gtsam.CustomFactor:
+                       robust_k: float | None, lens_key: int | None = None,
+                       table: PoseTable | None = None) -> gtsam.CustomFactor:
     """The `corner_factor`s of one view's tags as one factor: the same error, the same whitened
     Jacobians row for row (each tag's Huber kernel applied to its own 8 rows), so a solve of the
     graph with it is the solve with the single factors (to round-off).  For the batch solve, whose
@@ -373,7 +417,8 @@ def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fix
     Python callback a view instead of one a tag, the tags' arithmetic in one compiled call
     (`corner_kernel.view_errors`).  Not for iSAM2: a variable that moves past the threshold would
     relinearise every tag of its views, and the factor ties the view's tags to each other in the
-    Bayes tree."""
+    Bayes tree.  With `table` the poses are read from it when it holds the values being evaluated
+    (`PoseTable`)."""
     n = len(sightings)
     if n == 0 or any(s.lens_basis is not None for s in sightings) != (lens_key is not None):
         raise ValueError("a view factor needs its sightings, and a lens key exactly when they carry a lens basis")
@@ -408,21 +453,32 @@ def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fix
     scales = np.zeros(n)
     ok = np.empty(n, np.bool_)
     view_errors = corner_kernel.view_errors
+    camera_from_table = np.empty((4, 4), order="F")   # the layout `Pose3.matrix()` gives: one compiled kernel
+    rows = np.zeros(n, np.int64)
+    seen = [-1, 0]                                    # the table generation `rows` are of, the camera's row
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
-        world_T_camera = values.atPose3(camera_key)
-        for i, key in enumerate(tag_keys):
-            world_T_tags[i] = values.atPose3(key).matrix()
+        if table is not None and table.values is values:
+            if seen[0] != table.generation:
+                rows[:] = [table.row[k] for k in tag_keys]
+                seen[:] = table.generation, table.row[camera_key]
+            np.take(table.poses, rows, axis=0, out=world_T_tags)
+            camera = camera_from_table
+            camera[:] = table.poses[seen[1]]
+        else:
+            camera = values.atPose3(camera_key).matrix()
+            for i, key in enumerate(tag_keys):
+                world_T_tags[i] = values.atPose3(key).matrix()
         for i, key in scale_keys:
             scales[i] = values.atVector(key)[0]
         d = _NO_LENS if lens_key is None else values.atVector(lens_key)
         want = jacobians is not None
         e = np.empty(8 * n)
         J = np.zeros((8 * n, width)) if want else _J6
-        if view_errors(world_T_camera.matrix(), world_T_tags, scales, d, cal, consts, inverse_sigma, huber_k, want,
+        if view_errors(camera, world_T_tags, scales, d, cal, consts, inverse_sigma, huber_k, want,
                        e, J, columns, ok):
             for i in np.flatnonzero(~ok):
-                _behind(sightings[i], world_T_camera, values.atPose3(tag_keys[i]), scales[i], d, cal, consts[i],
+                _behind(sightings[i], values.atPose3(camera_key), values.atPose3(tag_keys[i]), scales[i], d, cal, consts[i],
                         columns[i], columns[n, 0], inverse_sigma[i], huber_k, e, J, 8 * i, want)
         if want:
             for j in range(len(keys)):

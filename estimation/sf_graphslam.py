@@ -41,7 +41,7 @@ from estimation.corner_noise import AbsoluteResiduals, CornerNoise
 from estimation.fiducials import Detection, tag_object_points
 from estimation import corner_kernel, levenberg_marquardt
 from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
-                                  CornerSighting, chain_factor, corner_factor, corner_view_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
+                                  CornerSighting, PoseTable, chain_factor, corner_factor, corner_view_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
                                   undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from lab.core.geometry import Pose3, Rot3
@@ -202,6 +202,7 @@ class SfGraphSlam:
         # (graph index, obliquity scale, camera, tag, scale key, undistorted corners, tag corners, lens basis)
         self._corner_factors: list[tuple] = []
         self._batch = gtsam.NonlinearFactorGraph()      # the batch solve's graph (`_batch_graph`), so far
+        self._pose_table = PoseTable()                  # its view factors' pose reads (`rig_model.PoseTable`)
         self._batch_upto = self._batch_corners = 0
         self._residuals_done = 0
         self._face_on: list[np.ndarray] = []            # each solve's new face-on residuals (px)
@@ -753,7 +754,16 @@ class SfGraphSlam:
         params.setAbsoluteErrorTol(1e-9)
         self._initialise_pending()
         start = self.estimate if warm_start else self.initial
-        self.estimate, _ = levenberg_marquardt.optimize(self._batch_graph(), start, params)
+        graph = self._batch_graph()
+        table = self._pose_table
+        if table is None:
+            self.estimate, _ = levenberg_marquardt.optimize(graph, start, params)
+        else:
+            table.track(start)
+            try:
+                self.estimate, _ = levenberg_marquardt.optimize(graph, start, params, table.load)
+            finally:
+                table.clear()
         # marginals must now come from this estimate (iSAM2 has not seen these factors)
         self._batch_solved = True
         self._batch_marginals = None
@@ -780,7 +790,8 @@ class SfGraphSlam:
             _, _, ck, tk, sk, u, local, basis, sigma, robust_k = f
             views.setdefault((ck, basis is not None, robust_k), []).append(CornerSighting(tk, sk, u, local, sigma, basis))
         for (ck, lensed, robust_k), sightings in views.items():
-            self._batch.add(corner_view_factor(ck, sightings, self._cal, robust_k, DISTORTION if lensed else None))
+            self._batch.add(corner_view_factor(ck, sightings, self._cal, robust_k, DISTORTION if lensed else None,
+                                               self._pose_table))
         self._batch_upto = self.graph.size()
         self._batch_corners = len(self._corner_factors)
         return self._batch

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from estimation.fiducials import tag_object_points
-from estimation.rig_model import (DISTORTION, CornerSighting, cal3_s2, corner_factor, corner_view_factor,
-                                  radial_basis)
+from estimation.rig_model import (DISTORTION, CornerSighting, PoseTable, cal3_s2, corner_factor,
+                                  corner_view_factor, radial_basis)
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
 from lab.core.geometry import Pose3, Rot3
 from test_slam_step_exact import GEOM, K, MODEL, _calibration, _steps
@@ -76,6 +76,56 @@ def test_a_view_factor_is_its_tags_corner_factors(seed, lens, robust, behind):
     assert np.abs(h_view - h_singles).max() <= 1e-9 * np.abs(h_singles).max()
 
 
+def _linear(factor: gtsam.CustomFactor, values: gtsam.Values) -> tuple[float, np.ndarray]:
+    one = gtsam.GaussianFactorGraph()
+    one.push_back(factor.linearize(values))
+    ordering = gtsam.Ordering()
+    for key in factor.keys():
+        ordering.push_back(key)
+    return factor.error(values), one.augmentedHessian(ordering)
+
+
+def test_a_view_factor_reads_a_pose_table_only_while_it_holds_the_values_evaluated():
+    cam, tags, meas = _view(1, True)
+    values = gtsam.Values()
+    values.insert(C(0), cam)
+    sightings = []
+    for i, (tag, uv) in enumerate(zip(tags, meas)):
+        values.insert(T(i), tag)
+        sightings.append(CornerSighting(T(i), None, uv, tag_object_points(0.1), 0.05, None))
+    table = PoseTable()
+    plain = corner_view_factor(C(0), sightings, CAL, 3.0)
+    tabled = corner_view_factor(C(0), sightings, CAL, 3.0, table=table)
+    error, hessian = _linear(plain, values)
+
+    def same(v: gtsam.Values) -> None:
+        e, h = _linear(plain, v)
+        te, th = _linear(tabled, v)
+        assert te == e and np.array_equal(th, h)
+
+    table.track(values)
+    same(values)                                   # tracked, nothing loaded: the factor reads the values
+    table.load(values)
+    assert _linear(tabled, values)[0] == error      # read from the table, to the bit
+    same(values)
+    moved = gtsam.Values(values)                   # other values (a tag moved 1 cm) with the table loaded
+    moved.update(T(2), tags[2].compose(Pose3(Rot3(), np.array([0.01, 0.0, 0.0]))))
+    same(moved)
+    assert _linear(tabled, moved)[0] != error       # ... were read, not the table's
+    table.load(moved)
+    same(moved)
+    same(values)                                   # the loaded values' copy is not the values
+    # a pose added ahead of every other moves every row: the factor re-reads them
+    values.insert(0, Pose3())
+    table.track(values)
+    table.load(values)
+    same(values)
+    with pytest.raises(ValueError, match="pose table of 8 poses"):
+        table.load(moved)
+    table.clear()
+    same(values)
+
+
 def test_a_view_factor_refuses_a_tag_twice_and_a_lens_it_has_no_basis_for():
     cam, tags, meas = _view(0, False)
     s = CornerSighting(T(0), None, meas[0], tag_object_points(0.1), 0.05, None)
@@ -122,3 +172,11 @@ def test_the_batch_solve_with_view_factors_is_the_solve_with_the_single_factors(
     grown = slam._batch_graph()
     assert grown.size() > size
     assert grown.error(slam.initial) == pytest.approx(slam.graph.error(slam.initial), rel=1e-12)
+    # ... and solves as the single factors do, its pose table tracking the new poses
+    generation = slam._pose_table.generation
+    estimate = slam.solve_batch()
+    assert slam._pose_table.generation == generation + 1 and slam._pose_table.values is None
+    reference = gtsam.LevenbergMarquardtOptimizer(slam.graph, slam.initial, params).optimize()
+    for t in sorted(slam.tags):
+        a, b = estimate.atPose3(slam.key(t)), reference.atPose3(slam.key(t))
+        assert np.abs(a.translation() - b.translation()).max() <= 1e-9

@@ -155,3 +155,26 @@ def test_an_indeterminate_damped_system_raises_lambda_as_gtsam_does():
         damped.optimize(gtsam.Ordering.ColamdNonlinearFactorGraph(graph))
     state = _against_gtsam(graph, values, params)
     assert state.inner > 100 and state.error < 1e-12
+
+
+def test_reads_sees_every_values_before_the_graph_is_evaluated_at_them():
+    """The contract `rig_model.PoseTable` relies on: every callback's values are the values last
+    handed to `reads`, the same Python object."""
+    graph, values = _far_start()
+    last: list[gtsam.Values] = []
+    calls = [0, 0]
+
+    def check(this, v, jacobians):
+        calls[0] += 1
+        calls[1] += v is last[-1]
+        if jacobians is not None:
+            jacobians[0] = np.zeros((1, 1))
+        return np.zeros(1)
+
+    graph.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [0], check))
+    params = _params()
+    params.setlambdaInitial(1e-9)
+    state = levenberg_marquardt.run(graph, values, params, reads=last.append)
+    assert calls[0] > 10 and calls[1] == calls[0]
+    assert len(last) > state.inner
+    _same(state.values, levenberg_marquardt.run(graph, values, params).values)
