@@ -422,23 +422,30 @@ def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fix
     n = len(sightings)
     if n == 0 or any(s.lens_basis is not None for s in sightings) != (lens_key is not None):
         raise ValueError("a view factor needs its sightings, and a lens key exactly when they carry a lens basis")
-    consts = np.array([corner_kernel.pack(s.corners_px, s.tag_corners_m,
-                                          None if s.lens_basis is None else -np.asarray(s.lens_basis, float))
-                       for s in sightings])
+    # `corner_kernel.pack`'s layout, a view at a time
+    consts = np.zeros((n, corner_kernel.SIZE))
+    consts[:, corner_kernel.MEAS:corner_kernel.LOCAL] = np.array([s.corners_px for s in sightings], float).reshape(n, 8)
+    consts[:, corner_kernel.LOCAL:corner_kernel.MINUS_BASIS] = np.array(
+        [s.tag_corners_m for s in sightings], float).reshape(n, 12)
+    if lens_key is not None:
+        consts[:, corner_kernel.MINUS_BASIS:] = -np.array([s.lens_basis for s in sightings], float).reshape(n, 16)
     inverse_sigma = np.array([1.0 / s.sigma_px for s in sightings])
     # the factor's columns: the camera (6), then each tag's pose (6) and print scale (1), the lens (2)
     keys, widths = [camera_key], [6]
     columns = np.full((n + 1, 2), -1, np.int64)
+    at = 6
     for i, s in enumerate(sightings):
-        columns[i, 0] = sum(widths)
+        columns[i, 0] = at
         keys.append(s.tag_key)
         widths.append(6)
+        at += 6
         if s.scale_key is not None:
-            columns[i, 1] = sum(widths)
+            columns[i, 1] = at
             keys.append(s.scale_key)
             widths.append(1)
+            at += 1
     if lens_key is not None:
-        columns[n, 0] = sum(widths)
+        columns[n, 0] = at
         keys.append(lens_key)
         widths.append(2)
     if len(set(keys)) != len(keys):
