@@ -463,13 +463,19 @@ def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fix
     camera_from_table = np.empty((4, 4), order="F")   # the layout `Pose3.matrix()` gives: one compiled kernel
     rows = np.zeros(n, np.int64)
     seen = [-1, 0]                                    # the table generation `rows` are of, the camera's row
+    # one error and one Jacobian buffer a factor, reused: GTSAM copies both out as the callback
+    # returns (the returned vector, and each `jacobians[j] = ...` into its own matrix), and every call
+    # rewrites every block that is not structurally zero
+    e = np.empty(8 * n)
+    J = np.zeros((8 * n, width))
+    blocks = [J[:, starts[j]:starts[j + 1]] for j in range(len(keys))]
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
         if table is not None and table.values is values:
             if seen[0] != table.generation:
                 rows[:] = [table.row[k] for k in tag_keys]
                 seen[:] = table.generation, table.row[camera_key]
-            np.take(table.poses, rows, axis=0, out=world_T_tags)
+            table.poses.take(rows, 0, world_T_tags)
             camera = camera_from_table
             camera[:] = table.poses[seen[1]]
         else:
@@ -480,16 +486,14 @@ def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fix
             scales[i] = values.atVector(key)[0]
         d = _NO_LENS if lens_key is None else values.atVector(lens_key)
         want = jacobians is not None
-        e = np.empty(8 * n)
-        J = np.zeros((8 * n, width)) if want else _J6
         if view_errors(camera, world_T_tags, scales, d, cal, consts, inverse_sigma, huber_k, want,
                        e, J, columns, ok):
             for i in np.flatnonzero(~ok):
                 _behind(sightings[i], values.atPose3(camera_key), values.atPose3(tag_keys[i]), scales[i], d, cal, consts[i],
                         columns[i], columns[n, 0], inverse_sigma[i], huber_k, e, J, 8 * i, want)
         if want:
-            for j in range(len(keys)):
-                jacobians[j] = J[:, starts[j]:starts[j + 1]]
+            for j, block in enumerate(blocks):
+                jacobians[j] = block
         return e
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), keys, error)

@@ -126,6 +126,28 @@ def test_a_view_factor_reads_a_pose_table_only_while_it_holds_the_values_evaluat
     same(values)
 
 
+def test_a_view_factors_reused_buffers_do_not_reach_what_gtsam_holds():
+    """The factor reuses its error and Jacobian arrays between calls: a linearisation GTSAM holds
+    must not change when the factor is called again elsewhere."""
+    cam, tags, meas = _view(2, True)
+    values = gtsam.Values()
+    values.insert(C(0), cam)
+    sightings = []
+    for i, (tag, uv) in enumerate(zip(tags, meas)):
+        values.insert(T(i), tag)
+        sightings.append(CornerSighting(T(i), None, uv, tag_object_points(0.1), 0.05, None))
+    view = corner_view_factor(C(0), sightings, CAL, 3.0)
+    first = view.linearize(values)
+    held = first.augmentedInformation().copy()
+    moved = gtsam.Values(values)
+    moved.update(C(0), cam.compose(Pose3(Rot3.Rz(0.02), np.array([0.03, 0.0, 0.0]))))
+    second = view.linearize(moved)
+    assert not np.array_equal(second.augmentedInformation(), held)
+    assert np.array_equal(first.augmentedInformation(), held)
+    assert view.error(values) != view.error(moved)
+    assert np.array_equal(view.linearize(values).augmentedInformation(), held)
+
+
 def test_a_view_factor_refuses_a_tag_twice_and_a_lens_it_has_no_basis_for():
     cam, tags, meas = _view(0, False)
     s = CornerSighting(T(0), None, meas[0], tag_object_points(0.1), 0.05, None)
