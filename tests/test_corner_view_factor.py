@@ -85,18 +85,24 @@ def _linear(factor: gtsam.CustomFactor, values: gtsam.Values) -> tuple[float, np
     return factor.error(values), one.augmentedHessian(ordering)
 
 
-def test_a_view_factor_reads_a_pose_table_only_while_it_holds_the_values_evaluated():
-    cam, tags, meas = _view(1, True)
+def _plain_view(seed: int) -> tuple[Pose3, list[Pose3], gtsam.Values, list[CornerSighting]]:
+    """`_view` (a tag behind the camera included) as values and sightings, without scales or lens."""
+    cam, tags, meas = _view(seed, True)
     values = gtsam.Values()
     values.insert(C(0), cam)
     sightings = []
     for i, (tag, uv) in enumerate(zip(tags, meas)):
         values.insert(T(i), tag)
         sightings.append(CornerSighting(T(i), None, uv, tag_object_points(0.1), 0.05, None))
+    return cam, tags, values, sightings
+
+
+def test_a_view_factor_reads_a_pose_table_only_while_it_holds_the_values_evaluated():
+    cam, tags, values, sightings = _plain_view(1)
     table = PoseTable()
     plain = corner_view_factor(C(0), sightings, CAL, 3.0)
     tabled = corner_view_factor(C(0), sightings, CAL, 3.0, table=table)
-    error, hessian = _linear(plain, values)
+    error = _linear(plain, values)[0]
 
     def same(v: gtsam.Values) -> None:
         e, h = _linear(plain, v)
@@ -129,13 +135,7 @@ def test_a_view_factor_reads_a_pose_table_only_while_it_holds_the_values_evaluat
 def test_a_view_factors_reused_buffers_do_not_reach_what_gtsam_holds():
     """The factor reuses its error and Jacobian arrays between calls: a linearisation GTSAM holds
     must not change when the factor is called again elsewhere."""
-    cam, tags, meas = _view(2, True)
-    values = gtsam.Values()
-    values.insert(C(0), cam)
-    sightings = []
-    for i, (tag, uv) in enumerate(zip(tags, meas)):
-        values.insert(T(i), tag)
-        sightings.append(CornerSighting(T(i), None, uv, tag_object_points(0.1), 0.05, None))
+    cam, tags, values, sightings = _plain_view(2)
     view = corner_view_factor(C(0), sightings, CAL, 3.0)
     first = view.linearize(values)
     held = first.augmentedInformation().copy()
