@@ -39,13 +39,16 @@ MIN_MODEL_FIDELITY = 1e-3
 
 
 def optimize(graph: gtsam.NonlinearFactorGraph, start: gtsam.Values, params: gtsam.LevenbergMarquardtParams,
-             reads: Callable[[gtsam.Values], None] | None = None) -> tuple[gtsam.Values, int]:
+             reads: Callable[[gtsam.Values], None] | None = None,
+             python_factors: bool = True) -> tuple[gtsam.Values, int]:
     """Levenberg-Marquardt from `start`: GTSAM's `optimize()`, step for step.  Returns the solution
     and the number of iterations.  `reads` is called with every values the graph is about to be
     evaluated at (its factors' bulk reads, `rig_model.PoseTable.load`); not with settings that go
-    to GTSAM's optimizer, whose values Python never sees."""
-    if (params.getDiagonalDamping() or not params.getUseFixedLambdaFactor() or params.getOrderingType() != "COLAMD"
-            or params.getLinearSolverType() != "MULTIFRONTAL_CHOLESKY"):
+    to GTSAM's optimizer, whose values Python never sees.  A graph of C++ factors only
+    (`python_factors` False) has no copies to avoid and goes to GTSAM's optimizer, which builds
+    its damping without a Python call a variable (the same result)."""
+    if (not python_factors or params.getDiagonalDamping() or not params.getUseFixedLambdaFactor()
+            or params.getOrderingType() != "COLAMD" or params.getLinearSolverType() != "MULTIFRONTAL_CHOLESKY"):
         return _gtsam_optimize(graph, start, params)
     state = run(graph, start, params, reads)
     return state.values, state.iterations
@@ -85,9 +88,15 @@ class State:
         self.iterations = 0
         self.inner = 0
         self.ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
-        zero = self.values.zeroVectors()
-        self._dims = [(k, zero.at(k).shape[0]) for k in sorted(self.values.keys())]
-        self._damping: dict[float, gtsam.GaussianFactorGraph] = {}
+        # the damping: a prior on every variable (`buildDampedSystem`), made once and given each
+        # lambda's sigma in place (half the cost of new factors: ~2 us a variable a lambda)
+        dims = sorted(self.values.dims().items())
+        self._priors = [gtsam.JacobianFactor(key, np.eye(dim), np.zeros(dim),
+                                             gtsam.noiseModel.Isotropic.Sigma(dim, 1.0))
+                        for key, dim in dims]
+        self._sigmas = {dim: np.ones(dim) for _, dim in dims}       # one array a dimension, shared
+        self._prior_sigmas = [self._sigmas[dim] for _, dim in dims]
+        self._damped_at: float | None = None
 
     def _read(self, values: gtsam.Values) -> None:
         if self.reads is not None:
@@ -99,28 +108,26 @@ class State:
         while not self._try_lambda(linear):
             pass
 
-    def _damping_priors(self) -> gtsam.GaussianFactorGraph:
-        """A prior of sigma 1/sqrt(lambda) on every variable (`buildDampedSystem`); lambda only
-        takes a few values in a solve, so each set is made once."""
-        priors = self._damping.get(self.lam)
-        if priors is None:
+    def _damping_priors(self) -> list[gtsam.JacobianFactor]:
+        """Every variable's prior of sigma 1/sqrt(lambda), GTSAM's `buildDampedSystem` (which sets
+        sigma = 1/sqrt(lambda) the same way).  The factors are reused: each damped system is
+        solved before the next lambda retunes them."""
+        if self._damped_at != self.lam:
             sigma = 1.0 / math.sqrt(self.lam)
-            models = {}
-            priors = gtsam.GaussianFactorGraph()
-            for key, dim in self._dims:
-                if dim not in models:
-                    models[dim] = (np.eye(dim), np.zeros(dim), gtsam.noiseModel.Isotropic.Sigma(dim, sigma))
-                A, b, model = models[dim]
-                priors.push_back(gtsam.JacobianFactor(key, A, b, model))
-            self._damping[self.lam] = priors
-        return priors
+            for sigmas in self._sigmas.values():
+                sigmas.fill(sigma)
+            for prior, sigmas in zip(self._priors, self._prior_sigmas):
+                prior.setModel(False, sigmas)
+            self._damped_at = self.lam
+        return self._priors
 
     def _try_lambda(self, linear: gtsam.GaussianFactorGraph) -> bool:
         """`LevenbergMarquardtOptimizer::tryLambda`: True once a step was taken or the search
         for one is over."""
         damped = gtsam.GaussianFactorGraph()
         damped.push_back(linear)
-        damped.push_back(self._damping_priors())
+        for prior in self._damping_priors():
+            damped.push_back(prior)
         success, stop = False, False
         try:
             delta = damped.optimize(self.ordering)

@@ -756,8 +756,10 @@ class SfGraphSlam:
         start = self.estimate if warm_start else self.initial
         graph = self._batch_graph()
         table = self._pose_table
-        if table is None:
-            self.estimate, _ = levenberg_marquardt.optimize(graph, start, params)
+        if self._cal is None or self.config.observation != "corners":     # no view factors (`_batch_graph`)
+            # the chain and corner factors are the graph's only Python factors
+            python_factors = self.rig is not None or self.config.observation == "corners"
+            self.estimate, _ = levenberg_marquardt.optimize(graph, start, params, python_factors=python_factors)
         else:
             table.track(start)
             try:

@@ -150,7 +150,8 @@ def test_an_indeterminate_damped_system_raises_lambda_as_gtsam_does():
     params.setlambdaInitial(1e-300)
     damped = gtsam.GaussianFactorGraph()
     damped.push_back(graph.linearize(values))
-    damped.push_back(levenberg_marquardt.State(graph, values, params)._damping_priors())
+    for prior in levenberg_marquardt.State(graph, values, params)._damping_priors():
+        damped.push_back(prior)
     with pytest.raises(RuntimeError, match="ndetermina"):
         damped.optimize(gtsam.Ordering.ColamdNonlinearFactorGraph(graph))
     state = _against_gtsam(graph, values, params)
@@ -178,3 +179,21 @@ def test_reads_sees_every_values_before_the_graph_is_evaluated_at_them():
     assert calls[0] > 10 and calls[1] == calls[0]
     assert len(last) > state.inner
     _same(state.values, levenberg_marquardt.run(graph, values, params).values)
+
+
+def test_a_graph_of_cpp_factors_solves_the_same_either_way():
+    """`python_factors=False` hands a C++-only graph to GTSAM's optimizer: the same solution."""
+    graph = gtsam.NonlinearFactorGraph()
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.05)
+    graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), noise))
+    values = gtsam.Values()
+    rng = np.random.default_rng(7)
+    step = gtsam.Pose3(gtsam.Rot3.Rz(0.4), np.array([1.0, 0.0, 0.1]))
+    for i in range(1, 8):
+        graph.add(gtsam.BetweenFactorPose3(i - 1, i, step, noise))
+        values.insert(i - 1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, 0.3, 3)), rng.normal(0, 1.0, 3)))
+    values.insert(7, gtsam.Pose3())
+    theirs, n_theirs = levenberg_marquardt.optimize(graph, values, _params(), python_factors=False)
+    state = _against_gtsam(graph, values, _params())
+    assert n_theirs == state.iterations >= 2
+    _same(theirs, state.values)
