@@ -158,9 +158,10 @@ def growth(rows: list[dict], key: str, against: str = "tags") -> float | None:
 
 
 def study(sizes=SIZES, observations=("corner-info", "corners"), seed: int = 0, max_corner_n: int = 6) -> dict:
-    """`corners` (the run's Python corner factor) stops at `max_corner_n`: its batch solve grew to
-    seconds past it (minutes before the batch took one factor a view and its callbacks stopped
-    copying the values: docs/benchmarks.md, "Speed")."""
+    """`corners` (the run's Python corner factor) stops at `max_corner_n` (`lab bench slam --only
+    scaling`: 8 since stop 43, whose batch takes ~0.5 s at N = 8; it was minutes before the batch
+    took one factor a view and its callbacks stopped copying the values: docs/benchmarks.md,
+    "Speed")."""
     out: dict = {"sizes": list(sizes), "rows": {}, "growth": {}}
     for obs in observations:
         rows = [measure(n, obs, seed) for n in sizes if obs != "corners" or n <= max_corner_n]

@@ -877,7 +877,7 @@ def run(args: argparse.Namespace) -> int:
             from lab.studies import bench_scaling
 
             sizes = (3, 4, 5) if args.quick else bench_scaling.SIZES
-            res["studies"][study] = bench_scaling.study(sizes, seed=args.seed, max_corner_n=4 if args.quick else 5)
+            res["studies"][study] = bench_scaling.study(sizes, seed=args.seed, max_corner_n=4 if args.quick else 8)
         elif study == "speed":
             from lab.studies import bench_scaling
 
