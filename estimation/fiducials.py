@@ -160,10 +160,20 @@ def _rolled_like(quads: np.ndarray, rolled: np.ndarray) -> np.ndarray:
     return options[best, np.arange(len(quads))]
 
 
-def _overlaps(quad: np.ndarray, others: np.ndarray) -> bool:
-    """Whether `quad`'s centre lies inside any of `others` (N, 4, 2)."""
-    c = quad.mean(axis=0)
-    return any(cv2.pointPolygonTest(o.astype(np.float32), (float(c[0]), float(c[1])), False) >= 0 for o in others)
+def _overlaps(quads: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """Whether each of `quads`' (M, 4, 2) centres lies inside (or on) any of the convex `others`
+    (N, 4, 2), either winding: on the same side of, or on, every edge.  One array pass for every
+    pair; aruco's candidates are convex (it drops the others), and one `cv2.pointPolygonTest` a
+    pair was ~1 ms of a photograph's 10 with 20 tags and 40 rejected quads."""
+    if len(quads) == 0 or len(others) == 0:
+        return np.zeros(len(quads), bool)
+    c = quads.mean(axis=1)[:, None, None, :]                           # (M, 1, 1, 2)
+    a = others[None]                                                   # (1, N, 4, 2)
+    edge = np.roll(a, -1, axis=2) - a
+    to = c - a
+    cross = edge[..., 0] * to[..., 1] - edge[..., 1] * to[..., 0]       # (M, N, 4)
+    inside = (cross >= 0).all(axis=2) | (cross <= 0).all(axis=2)
+    return inside.any(axis=1)
 
 
 def grown_quad(corners: np.ndarray, cells: float) -> np.ndarray:
@@ -267,7 +277,7 @@ class TagDetector:
         rej = np.array([r.reshape(4, 2) for r in rejected], dtype=np.float64).reshape(-1, 4, 2)
         if len(rej) and self._allowed.size:
             sides = np.linalg.norm(np.roll(rej, -1, axis=1) - rej, axis=2)
-            fresh = np.array([not _overlaps(r, quads) for r in rej], bool)
+            fresh = ~_overlaps(rej, quads)
             # aruco's unrefined quads read a tag ~1 px small: the side check proper comes later
             rej = rej[(sides.min(axis=1) >= cfg.min_side_px - 2.0) & fresh]
         else:

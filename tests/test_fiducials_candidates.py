@@ -62,3 +62,29 @@ def test_the_filter_is_off_for_tags_without_a_quiet_zone(monkeypatch):
     assert not calls
     TagDetector(K, DIST, {i: SIZE for i in range(12)}).find(grey)
     assert calls
+
+
+def test_a_rejected_quad_overlaps_a_found_one_as_opencv_says():
+    """`_overlaps` (every rejected quad's centre against every found quad in one array pass) is
+    `cv2.pointPolygonTest` of each pair, for convex quads of either winding."""
+    import cv2
+
+    from estimation.fiducials import _overlaps
+
+    rng = np.random.default_rng(0)
+    compared = inside = 0
+    for _ in range(200):
+        found = []
+        for _ in range(int(rng.integers(0, 6))):
+            centre, radius = rng.uniform(0, 100, 2), rng.uniform(5, 30)
+            angles = np.sort(rng.uniform(0, 2 * math.pi, 4))[::int(rng.choice([-1, 1]))]
+            found.append(centre + radius * np.stack([np.cos(angles), np.sin(angles)], axis=1))
+        found = np.array(found).reshape(-1, 4, 2)
+        rejected = rng.uniform(0, 100, (int(rng.integers(0, 20)), 4, 2))
+        got = _overlaps(rejected, found)
+        want = [any(cv2.pointPolygonTest(f.astype(np.float32), tuple(float(x) for x in r.mean(axis=0)), False) >= 0
+                    for f in found) for r in rejected]
+        assert got.tolist() == want
+        compared += len(rejected)
+        inside += int(got.sum())
+    assert compared > 1000 and 100 < inside < compared - 100
