@@ -23,12 +23,15 @@ MEAS, LOCAL, MINUS_BASIS, SIZE = 0, 8, 20, 36
 
 def pack(meas: np.ndarray, local: np.ndarray, minus_basis: np.ndarray | None) -> np.ndarray:
     """The constants of one factor in the kernel's layout (`meas` (4, 2) undistorted corners in
-    px; `local` (4, 3) m; `minus_basis` (8, 2) or none)."""
-    c = np.zeros(SIZE)
-    c[MEAS:LOCAL] = np.asarray(meas, float).reshape(8)
-    c[LOCAL:MINUS_BASIS] = np.asarray(local, float).reshape(12)
+    px; `local` (4, 3) m; `minus_basis` (8, 2) or none), or of several at once with a leading
+    axis on each ((n, 4, 2), (n, 4, 3), (n, 8, 2) -> (n, SIZE): a view factor's tags)."""
+    meas = np.asarray(meas, float)
+    lead = meas.shape[:-2]
+    c = np.zeros(lead + (SIZE,))
+    c[..., MEAS:LOCAL] = meas.reshape(lead + (8,))
+    c[..., LOCAL:MINUS_BASIS] = np.asarray(local, float).reshape(lead + (12,))
     if minus_basis is not None:
-        c[MINUS_BASIS:SIZE] = np.asarray(minus_basis, float).reshape(16)
+        c[..., MINUS_BASIS:SIZE] = np.asarray(minus_basis, float).reshape(lead + (16,))
     return c
 
 

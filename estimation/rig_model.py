@@ -422,13 +422,10 @@ def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fix
     n = len(sightings)
     if n == 0 or any(s.lens_basis is not None for s in sightings) != (lens_key is not None):
         raise ValueError("a view factor needs its sightings, and a lens key exactly when they carry a lens basis")
-    # `corner_kernel.pack`'s layout, a view at a time
-    consts = np.zeros((n, corner_kernel.SIZE))
-    consts[:, corner_kernel.MEAS:corner_kernel.LOCAL] = np.array([s.corners_px for s in sightings], float).reshape(n, 8)
-    consts[:, corner_kernel.LOCAL:corner_kernel.MINUS_BASIS] = np.array(
-        [s.tag_corners_m for s in sightings], float).reshape(n, 12)
-    if lens_key is not None:
-        consts[:, corner_kernel.MINUS_BASIS:] = -np.array([s.lens_basis for s in sightings], float).reshape(n, 16)
+    consts = corner_kernel.pack(np.array([s.corners_px for s in sightings], float).reshape(n, 4, 2),
+                                np.array([s.tag_corners_m for s in sightings], float).reshape(n, 4, 3),
+                                None if lens_key is None else
+                                -np.array([s.lens_basis for s in sightings], float).reshape(n, 8, 2))
     inverse_sigma = np.array([1.0 / s.sigma_px for s in sightings])
     # the factor's columns: the camera (6), then each tag's pose (6) and print scale (1), the lens (2)
     keys, widths = [camera_key], [6]

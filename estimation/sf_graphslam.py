@@ -756,7 +756,7 @@ class SfGraphSlam:
         start = self.estimate if warm_start else self.initial
         graph = self._batch_graph()
         table = self._pose_table
-        if self._cal is None or self.config.observation != "corners":     # no view factors (`_batch_graph`)
+        if not self._view_factors():
             # the chain and corner factors are the graph's only Python factors
             python_factors = self.rig is not None or self.config.observation == "corners"
             self.estimate, _ = levenberg_marquardt.optimize(graph, start, params, python_factors=python_factors)
@@ -771,6 +771,11 @@ class SfGraphSlam:
         self._batch_marginals = None
         return self.estimate
 
+    def _view_factors(self) -> bool:
+        """Whether the batch takes the corner factors a view at a time (`_batch_graph`): the corner
+        model with the intrinsics fixed."""
+        return self._cal is not None and self.config.observation == "corners"
+
     def _batch_graph(self) -> gtsam.NonlinearFactorGraph:
         """The graph the batch solve takes: the run's graph with each view's corner factors as one
         factor (`rig_model.corner_view_factor`: the same error and whitened Jacobians, so the same
@@ -780,7 +785,7 @@ class SfGraphSlam:
         (docs/benchmarks.md, "Speed").  iSAM2 keeps the single factors (see the factor's note).
         Kept between solves and extended by what was added since: a view's factors all come in
         its `add_view`, and the graph only grows."""
-        if self._cal is None or self.config.observation != "corners":
+        if not self._view_factors():
             return self.graph
         corner = {f[0]: f for f in self._corner_factors[self._batch_corners:]}
         views: dict[tuple[int, bool, float | None], list[CornerSighting]] = {}
