@@ -86,6 +86,15 @@ def _median_distances(fits: np.ndarray, design: np.ndarray, est: np.ndarray, axe
     return medians
 
 
+def warm() -> None:
+    """Load (or, the first time on a machine, compile: ~2 s) the base search's kernel now, as
+    `corner_kernel.warm` does the graph's: a run calls it before its first step, whose tag
+    elimination would otherwise pay it."""
+    fits = np.tile(np.eye(4), (2, 1, 1))
+    points = np.zeros((3, 3))
+    _median_distances(fits, points, points.copy(), points.copy(), False)
+
+
 def eliminate_tags(estimates: Mapping[int, Pose3], model: BorgModel, *, cutoff_m: float = 0.05,
                    max_remove: int = 3, min_tags: int = 3, base_tag: int | None = None,
                    explained_axes: Mapping[int, np.ndarray] | None = None) -> EliminationResult:

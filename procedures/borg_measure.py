@@ -14,7 +14,7 @@ from estimation.rig_model import RigGeometry, ViewMotion
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
 from estimation.sightings import near_sightings
 from lab.core.rig_calibration_file import RigCalibration
-from estimation.tag_elimination import eliminate_tags
+from estimation.tag_elimination import eliminate_tags, warm as warm_tag_elimination
 from estimation.verification import Tolerances, verify_module
 from lab.core.geometry import Pose3, from_xyzquat, to_xyzquat
 from lab.core.recorder import messages as m
@@ -43,6 +43,7 @@ class Measurement:
         self.detector_camera = (np.asarray(K, float), np.asarray(intrinsics.dist, float))
         self.tolerances = Tolerances()
         self.cutoff_m = float(self.config.get("elimination_cutoff_m", 0.05))
+        warm_tag_elimination()        # the kernel loads (or compiles) now, not in the first step
         # 0: every sighting of a view goes into the graph (`near_sightings`)
         self.near_tags_per_view = int(self.config.get("near_tags_per_view", 0))
         self.sightings = [0, 0]            # (put in the graph, detected) over the run's views

@@ -12,7 +12,7 @@ import pytest
 
 from lab.studies import slam_sim as ss
 from lab.studies.bench_slam import run_ours
-from estimation.tag_elimination import _median_distances, eliminate_tags
+from estimation.tag_elimination import _median_distances, eliminate_tags, warm
 from lab.core.geometry import Pose3, Rot3
 from lab.core.structures.borg import build_borg
 
@@ -135,3 +135,15 @@ def test_the_base_tag_is_the_most_consistent_candidate(explained):
     unit = np.array([axes.get(t, np.zeros(3)) for t in ids])
     assert _median_distances(fits, design, e, unit, explained) == pytest.approx(medians, abs=1e-12)
     assert len(set(np.round(medians, 9))) > len(ids) // 2      # the candidates do differ: the test can fail
+
+
+def test_warm_compiles_the_signature_elimination_calls(model, tags):
+    """`warm` (a run calls it before its first step) leaves nothing for an elimination to compile:
+    the kernel's one signature is the one `eliminate_tags` calls, with and without explained axes."""
+    warm()
+    signatures = list(_median_distances.signatures)
+    assert len(signatures) == 1
+    est = {t: model.tags[t].structure_T_tag for t in tags}
+    eliminate_tags(est, model)
+    eliminate_tags(est, model, explained_axes={tags[0]: np.array([0.0, 0.0, 1.0])})
+    assert list(_median_distances.signatures) == signatures
