@@ -155,6 +155,38 @@ def view_errors(world_T_camera: np.ndarray, world_T_tags: np.ndarray, scales: np
 
 
 @numba.njit(cache=True, fastmath=False, nogil=True)
+def batch_view_errors(poses: np.ndarray, camera_rows: np.ndarray, tag_rows: np.ndarray, scale_rows: np.ndarray,
+                      scales: np.ndarray, lens: np.ndarray, lensed: np.ndarray, cal: np.ndarray, c: np.ndarray,
+                      inverse_sigma: np.ndarray, huber_k: np.ndarray, want_jacobians: bool, e: np.ndarray,
+                      J: np.ndarray, columns: np.ndarray, first_tag: np.ndarray, first_J: np.ndarray,
+                      ok: np.ndarray) -> int:
+    """`view_errors` for every view of a batch in one call (`view_batch.ViewBatch`).  `poses`
+    (m, 4, 4) every pose of the values; view v reads the camera `poses[camera_rows[v]]` and the
+    sightings `first_tag[v]` to `first_tag[v + 1]` of the per-sighting arrays (`tag_rows` into
+    `poses`, `scale_rows` into `scales` (-1: none), `c`, `inverse_sigma`, `ok`), the lens if
+    `lensed[v]`, its kernel `huber_k[v]`; its error is e[8 first_tag[v]:8 first_tag[v + 1]], its
+    Jacobian J[first_J[v]:first_J[v + 1]] column-major (the layout GTSAM's matrices have: each key's
+    block is handed over as one contiguous copy), and its `columns` rows first_tag[v] + v on.
+    Returns how many sightings have a corner not in front of their camera."""
+    missing = 0
+    no_lens = lens[:0]
+    for v in range(camera_rows.shape[0]):
+        t0, t1 = first_tag[v], first_tag[v + 1]
+        n = t1 - t0
+        tags = np.empty((n, 4, 4))
+        sc = np.zeros(n)
+        for i in range(n):
+            tags[i] = poses[tag_rows[t0 + i]]
+            if scale_rows[t0 + i] >= 0:
+                sc[i] = scales[scale_rows[t0 + i]]
+        Jv = J[first_J[v]:first_J[v + 1]].reshape(((first_J[v + 1] - first_J[v]) // (8 * n), 8 * n)).T
+        missing += view_errors(poses[camera_rows[v]], tags, sc, lens if lensed[v] else no_lens, cal, c[t0:t1],
+                               inverse_sigma[t0:t1], huber_k[v], want_jacobians, e[8 * t0:8 * t1], Jv,
+                               columns[t0 + v:t1 + v + 1], ok[t0:t1])
+    return missing
+
+
+@numba.njit(cache=True, fastmath=False, nogil=True)
 def whiten_rows(e: np.ndarray, J: np.ndarray, r0: int, inverse_sigma: float, huber_k: float,
                  want_jacobians: bool) -> None:
     """One tag's 8 rows (from r0) as GTSAM whitens a corner factor with the noise
@@ -288,6 +320,14 @@ def warm() -> None:
     for want in (False, True):
         view_errors(eye, tags, np.zeros(1), np.zeros(2), cal, c[None, :], np.ones(1), 1.0, want, np.empty(8),
                     np.zeros((8, 13)), columns, np.empty(1, np.bool_))
+    # every view of a batch at once (`view_batch.ViewBatch`), the poses in a table's row-major layout
+    poses = np.empty((2, 4, 4))
+    poses[0], poses[1] = np.eye(4), tag
+    one, none = np.zeros(1, np.int64), np.full(1, -1, np.int64)
+    for want in (False, True):
+        batch_view_errors(poses, one, one + 1, none, np.zeros(0), np.zeros(2), np.zeros(1, np.bool_), cal,
+                          c[None, :], np.ones(1), np.ones(1), want, np.empty(8), np.zeros(8 * 13), columns,
+                          np.array([0, 1], np.int64), np.array([0, 8 * 13], np.int64), np.empty(1, np.bool_))
     # a new tag's refined start (`rig_model.refine_tag_pose`), the tag as `Pose3.matrix()` gives it
     camera_T_structure = np.empty((1, 4, 4))
     camera_T_structure[0] = np.eye(4)

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Callable
+from typing import Protocol
 
 import gtsam
 import numpy as np
@@ -38,27 +38,36 @@ import numpy as np
 MIN_MODEL_FIDELITY = 1e-3
 
 
+class Cost(Protocol):
+    """What the optimizer evaluates: a graph's error and its linearisation at a point.  A
+    `gtsam.NonlinearFactorGraph` is one; `view_batch.BatchCost` evaluates a batch graph's view
+    factors together."""
+
+    def error(self, values: gtsam.Values) -> float: ...
+
+    def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph: ...
+
+
 def optimize(graph: gtsam.NonlinearFactorGraph, start: gtsam.Values, params: gtsam.LevenbergMarquardtParams,
-             reads: Callable[[gtsam.Values], None] | None = None,
-             python_factors: bool = True) -> tuple[gtsam.Values, int]:
+             cost: Cost | None = None, python_factors: bool = True) -> tuple[gtsam.Values, int]:
     """Levenberg-Marquardt from `start`: GTSAM's `optimize()`, step for step.  Returns the solution
-    and the number of iterations.  `reads` is called with every values the graph is about to be
-    evaluated at (its factors' bulk reads, `rig_model.PoseTable.load`); not with settings that go
-    to GTSAM's optimizer, whose values Python never sees.  A graph of C++ factors only
+    and the number of iterations.  `cost` evaluates the graph's error and linearisation (default:
+    the graph's own; it must be the graph's to round-off); settings that go to GTSAM's optimizer
+    do not use it.  A graph of C++ factors only
     (`python_factors` False) has no copies to avoid and goes to GTSAM's optimizer, which builds
     its damping without a Python call a variable (the same result)."""
     if (not python_factors or params.getDiagonalDamping() or not params.getUseFixedLambdaFactor()
             or params.getOrderingType() != "COLAMD" or params.getLinearSolverType() != "MULTIFRONTAL_CHOLESKY"):
         return _gtsam_optimize(graph, start, params)
-    state = run(graph, start, params, reads)
+    state = run(graph, start, params, cost)
     return state.values, state.iterations
 
 
 def run(graph: gtsam.NonlinearFactorGraph, start: gtsam.Values, params: gtsam.LevenbergMarquardtParams,
-        reads: Callable[[gtsam.Values], None] | None = None) -> State:
+        cost: Cost | None = None) -> State:
     """`NonlinearOptimizer::defaultOptimize` over `State`; the final state (`optimize`'s
     parameters only)."""
-    state = State(graph, start, params, reads)
+    state = State(graph, start, params, cost)
     new_error = state.error
     if new_error <= params.getErrorTol() or state.iterations >= params.getMaxIterations():
         return state
@@ -76,13 +85,12 @@ class State:
     its factor, and the counts GTSAM keeps (`iterations`, `inner`: every lambda tried)."""
 
     def __init__(self, graph: gtsam.NonlinearFactorGraph, start: gtsam.Values,
-                 params: gtsam.LevenbergMarquardtParams, reads: Callable[[gtsam.Values], None] | None = None) -> None:
+                 params: gtsam.LevenbergMarquardtParams, cost: Cost | None = None) -> None:
         self.graph = graph
         self.params = params
-        self.reads = reads
+        self.cost: Cost = graph if cost is None else cost
         self.values = gtsam.Values(start)
-        self._read(self.values)
-        self.error = graph.error(self.values)
+        self.error = self.cost.error(self.values)
         self.lam: float = params.getlambdaInitial()
         self.factor = params.getlambdaFactor()
         self.iterations = 0
@@ -90,21 +98,17 @@ class State:
         self.ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
         # the damping: a prior on every variable (`buildDampedSystem`), made once and given each
         # lambda's sigma in place (half the cost of new factors: ~2 us a variable a lambda)
+        # (each made with one shared identity, zero vector and unit model: `_damping_priors` gives
+        # every prior its own model before its first use; ~8 us a variable less than new ones)
         dims = sorted(self.values.dims().items())
-        self._priors = [gtsam.JacobianFactor(key, np.eye(dim), np.zeros(dim),
-                                             gtsam.noiseModel.Isotropic.Sigma(dim, 1.0))
-                        for key, dim in dims]
+        shared = {dim: (np.eye(dim), np.zeros(dim), gtsam.noiseModel.Unit.Create(dim)) for dim in {d for _, d in dims}}
+        self._priors = [gtsam.JacobianFactor(key, *shared[dim]) for key, dim in dims]
         self._sigmas = {dim: np.ones(dim) for _, dim in dims}       # one array a dimension, shared
         self._prior_sigmas = [self._sigmas[dim] for _, dim in dims]
         self._damped_at: float | None = None
 
-    def _read(self, values: gtsam.Values) -> None:
-        if self.reads is not None:
-            self.reads(values)
-
     def iterate(self) -> None:
-        self._read(self.values)
-        linear = self.graph.linearize(self.values)
+        linear = self.cost.linearize(self.values)
         while not self._try_lambda(linear):
             pass
 
@@ -140,8 +144,7 @@ class State:
             linear_change = old_linear - linear.error(delta)
             if linear_change >= 0:
                 new_values = self.values.retract(delta)
-                self._read(new_values)
-                new_error = self.graph.error(new_values)
+                new_error = self.cost.error(new_values)
                 change = self.error - new_error
                 if linear_change > sys.float_info.epsilon * old_linear:
                     fidelity = change / linear_change

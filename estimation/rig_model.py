@@ -407,18 +407,34 @@ class PoseTable:
         self.values = None
 
 
-def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fixed: gtsam.Cal3_S2,
-                       robust_k: float | None, lens_key: int | None = None,
-                       table: PoseTable | None = None) -> gtsam.CustomFactor:
-    """The `corner_factor`s of one view's tags as one factor: the same error, the same whitened
-    Jacobians row for row (each tag's Huber kernel applied to its own 8 rows), so a solve of the
-    graph with it is the solve with the single factors (to round-off).  For the batch solve, whose
-    Levenberg-Marquardt calls every factor back at every linearisation and error evaluation: one
-    Python callback a view instead of one a tag, the tags' arithmetic in one compiled call
-    (`corner_kernel.view_errors`).  Not for iSAM2: a variable that moves past the threshold would
-    relinearise every tag of its views, and the factor ties the view's tags to each other in the
-    Bayes tree.  With `table` the poses are read from it when it holds the values being evaluated
-    (`PoseTable`)."""
+@dataclass(frozen=True)
+class ViewLayout:
+    """What `corner_kernel.view_errors` needs of one view factor besides the values: its keys and
+    the column each key's block starts at, the kernel's `columns` and each tag's packed constants,
+    1/sigma and key (`corner_view_factor`, `view_batch.ViewBatch`)."""
+
+    camera_key: int
+    sightings: tuple[CornerSighting, ...]
+    keys: tuple[int, ...]              # the camera, each tag and its scale (if any), the lens (if any)
+    starts: np.ndarray                 # (len(keys) + 1,) the column each key's block starts at, then the width
+    columns: np.ndarray                # (n + 1, 2) `view_errors`' columns
+    consts: np.ndarray                 # (n, corner_kernel.SIZE)
+    inverse_sigma: np.ndarray          # (n,)
+    huber_k: float                     # <= 0: no kernel
+    lens_key: int | None
+
+    @property
+    def width(self) -> int:
+        return int(self.starts[-1])
+
+    @property
+    def tag_keys(self) -> list[int]:
+        return [s.tag_key for s in self.sightings]
+
+
+def view_layout(camera_key: int, sightings: Sequence[CornerSighting], robust_k: float | None,
+                lens_key: int | None = None) -> ViewLayout:
+    """One view's `ViewLayout` (the checks `corner_view_factor` states)."""
     n = len(sightings)
     if n == 0 or any(s.lens_basis is not None for s in sightings) != (lens_key is not None):
         raise ValueError("a view factor needs its sightings, and a lens key exactly when they carry a lens basis")
@@ -426,7 +442,6 @@ def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fix
                                 np.array([s.tag_corners_m for s in sightings], float).reshape(n, 4, 3),
                                 None if lens_key is None else
                                 -np.array([s.lens_basis for s in sightings], float).reshape(n, 8, 2))
-    inverse_sigma = np.array([1.0 / s.sigma_px for s in sightings])
     # the factor's columns: the camera (6), then each tag's pose (6) and print scale (1), the lens (2)
     keys, widths = [camera_key], [6]
     columns = np.full((n + 1, 2), -1, np.int64)
@@ -447,11 +462,36 @@ def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fix
         widths.append(2)
     if len(set(keys)) != len(keys):
         raise ValueError("a view factor reads each tag once")
-    starts = np.cumsum([0] + widths)
-    width = int(starts[-1])
+    return ViewLayout(camera_key, tuple(sightings), tuple(keys), np.cumsum([0] + widths), columns, consts,
+                      np.array([1.0 / s.sigma_px for s in sightings]), float(robust_k) if robust_k else 0.0,
+                      lens_key)
+
+
+def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fixed: gtsam.Cal3_S2,
+                       robust_k: float | None, lens_key: int | None = None,
+                       table: PoseTable | None = None) -> gtsam.CustomFactor:
+    """The `corner_factor`s of one view's tags as one factor: the same error, the same whitened
+    Jacobians row for row (each tag's Huber kernel applied to its own 8 rows), so a solve of the
+    graph with it is the solve with the single factors (to round-off).  For the batch solve, whose
+    Levenberg-Marquardt calls every factor back at every linearisation and error evaluation: one
+    Python callback a view instead of one a tag, the tags' arithmetic in one compiled call
+    (`corner_kernel.view_errors`).  Not for iSAM2: a variable that moves past the threshold would
+    relinearise every tag of its views, and the factor ties the view's tags to each other in the
+    Bayes tree.  With `table` the poses are read from it when it holds the values being evaluated
+    (`PoseTable`)."""
+    layout = view_layout(camera_key, sightings, robust_k, lens_key)
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * len(layout.sightings)), list(layout.keys),
+                              view_error_function(layout, fixed, table))
+
+
+def view_error_function(layout: ViewLayout, fixed: gtsam.Cal3_S2, table: PoseTable | None = None):
+    """`corner_view_factor`'s error function (GTSAM's `CustomFactor` callback) for `layout`."""
+    sightings, camera_key, lens_key = layout.sightings, layout.camera_key, layout.lens_key
+    n = len(sightings)
+    consts, inverse_sigma, columns, huber_k = layout.consts, layout.inverse_sigma, layout.columns, layout.huber_k
+    starts = layout.starts
     cal = _cal_vector(fixed)
-    huber_k = float(robust_k) if robust_k else 0.0
-    tag_keys = [s.tag_key for s in sightings]
+    tag_keys = layout.tag_keys
     scale_keys = [(i, s.scale_key) for i, s in enumerate(sightings) if s.scale_key is not None]
     world_T_tags = np.empty((n, 4, 4))
     scales = np.zeros(n)
@@ -464,8 +504,8 @@ def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fix
     # returns (the returned vector, and each `jacobians[j] = ...` into its own matrix), and every call
     # rewrites every block that is not structurally zero
     e = np.empty(8 * n)
-    J = np.zeros((8 * n, width))
-    blocks = [J[:, starts[j]:starts[j + 1]] for j in range(len(keys))]
+    J = np.zeros((8 * n, layout.width))
+    blocks = [J[:, starts[j]:starts[j + 1]] for j in range(len(layout.keys))]
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
         if table is not None and table.values is values:
@@ -485,15 +525,24 @@ def corner_view_factor(camera_key: int, sightings: Sequence[CornerSighting], fix
         want = jacobians is not None
         if view_errors(camera, world_T_tags, scales, d, cal, consts, inverse_sigma, huber_k, want,
                        e, J, columns, ok):
-            for i in np.flatnonzero(~ok):
-                _behind(sightings[i], values.atPose3(camera_key), values.atPose3(tag_keys[i]), scales[i], d, cal, consts[i],
-                        columns[i], columns[n, 0], inverse_sigma[i], huber_k, e, J, 8 * i, want)
+            behind_rows(layout, values, scales, d, cal, ok, e, J, want)
         if want:
             for j, block in enumerate(blocks):
                 jacobians[j] = block
         return e
 
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(8 * n), keys, error)
+    return error
+
+
+def behind_rows(layout: ViewLayout, values: gtsam.Values, scales: np.ndarray, d: np.ndarray, cal: np.ndarray,
+                ok: np.ndarray, e: np.ndarray, J: np.ndarray, want: bool) -> None:
+    """The rows `view_errors` left to its caller (`ok` False: a corner on or behind the camera's
+    plane), each by `_behind`."""
+    n = len(layout.sightings)
+    for i in np.flatnonzero(~ok):
+        _behind(layout.sightings[i], values.atPose3(layout.camera_key), values.atPose3(layout.sightings[i].tag_key),
+                scales[i], d, cal, layout.consts[i], layout.columns[i], layout.columns[n, 0], layout.inverse_sigma[i],
+                layout.huber_k, e, J, 8 * i, want)
 
 
 def _behind(s: CornerSighting, world_T_camera: Pose3, world_T_tag: Pose3, scale: float, d: np.ndarray,

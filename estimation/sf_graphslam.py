@@ -41,9 +41,10 @@ from estimation.corner_noise import AbsoluteResiduals, CornerNoise
 from estimation.fiducials import Detection, tag_object_points
 from estimation import corner_kernel, levenberg_marquardt
 from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
-                                  CornerSighting, PoseTable, chain_factor, corner_factor, corner_view_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
+                                  CornerSighting, PoseTable, chain_factor, corner_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
                                   undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
+from estimation.view_batch import BatchCost, ViewBatch
 from lab.core.geometry import Pose3, Rot3
 from lab.core.rig_calibration_file import RigCalibration
 from lab.core.structures.borg import BorgModel
@@ -202,7 +203,10 @@ class SfGraphSlam:
         # (graph index, obliquity scale, camera, tag, scale key, undistorted corners, tag corners, lens basis)
         self._corner_factors: list[tuple] = []
         self._batch = gtsam.NonlinearFactorGraph()      # the batch solve's graph (`_batch_graph`), so far
+        self._batch_others = gtsam.NonlinearFactorGraph()   # ... its factors other than the view factors
         self._pose_table = PoseTable()                  # its view factors' pose reads (`rig_model.PoseTable`)
+        # ... and the view factors, evaluated together (`view_batch.ViewBatch`)
+        self._view_batch = None if self._cal is None else ViewBatch(self._cal, self._pose_table)
         self._batch_upto = self._batch_corners = 0
         self._residuals_done = 0
         self._face_on: list[np.ndarray] = []            # each solve's new face-on residuals (px)
@@ -755,17 +759,19 @@ class SfGraphSlam:
         self._initialise_pending()
         start = self.estimate if warm_start else self.initial
         graph = self._batch_graph()
-        table = self._pose_table
         if not self._view_factors():
             # the chain and corner factors are the graph's only Python factors
             python_factors = self.rig is not None or self.config.observation == "corners"
             self.estimate, _ = levenberg_marquardt.optimize(graph, start, params, python_factors=python_factors)
         else:
-            table.track(start)
+            batch = self._view_batch
+            assert batch is not None
+            batch.track(start)
             try:
-                self.estimate, _ = levenberg_marquardt.optimize(graph, start, params, table.load)
+                self.estimate, _ = levenberg_marquardt.optimize(graph, start, params,
+                                                                BatchCost(graph, self._batch_others, batch))
             finally:
-                table.clear()
+                batch.release()
         # marginals must now come from this estimate (iSAM2 has not seen these factors)
         self._batch_solved = True
         self._batch_marginals = None
@@ -793,12 +799,13 @@ class SfGraphSlam:
             f = corner.get(i)
             if f is None:
                 self._batch.add(self.graph.at(i))
+                self._batch_others.add(self.graph.at(i))
                 continue
             _, _, ck, tk, sk, u, local, basis, sigma, robust_k = f
             views.setdefault((ck, basis is not None, robust_k), []).append(CornerSighting(tk, sk, u, local, sigma, basis))
+        assert self._view_batch is not None
         for (ck, lensed, robust_k), sightings in views.items():
-            self._batch.add(corner_view_factor(ck, sightings, self._cal, robust_k, DISTORTION if lensed else None,
-                                               self._pose_table))
+            self._batch.add(self._view_batch.add(ck, sightings, robust_k, DISTORTION if lensed else None))
         self._batch_upto = self.graph.size()
         self._batch_corners = len(self._corner_factors)
         return self._batch

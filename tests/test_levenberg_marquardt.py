@@ -158,9 +158,10 @@ def test_an_indeterminate_damped_system_raises_lambda_as_gtsam_does():
     assert state.inner > 100 and state.error < 1e-12
 
 
-def test_reads_sees_every_values_before_the_graph_is_evaluated_at_them():
-    """The contract `rig_model.PoseTable` relies on: every callback's values are the values last
-    handed to `reads`, the same Python object."""
+def test_the_cost_evaluates_every_point_and_the_graph_only_through_it():
+    """The contract `view_batch.BatchCost` relies on: every error and linearisation goes through
+    the cost, and a factor is called only with the values the cost was last handed (the same
+    Python object), so what the cost computed there is what the graph is evaluated at."""
     graph, values = _far_start()
     last: list[gtsam.Values] = []
     calls = [0, 0]
@@ -173,9 +174,19 @@ def test_reads_sees_every_values_before_the_graph_is_evaluated_at_them():
         return np.zeros(1)
 
     graph.add(gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(1), [0], check))
+
+    class Seen:
+        def error(self, v):
+            last.append(v)
+            return graph.error(v)
+
+        def linearize(self, v):
+            last.append(v)
+            return graph.linearize(v)
+
     params = _params()
     params.setlambdaInitial(1e-9)
-    state = levenberg_marquardt.run(graph, values, params, reads=last.append)
+    state = levenberg_marquardt.run(graph, values, params, Seen())
     assert calls[0] > 10 and calls[1] == calls[0]
     assert len(last) > state.inner
     _same(state.values, levenberg_marquardt.run(graph, values, params).values)
