@@ -369,12 +369,13 @@ class PoseTable:
     (`gtsam.utilities.extractPose3`), for factors that read many poses a callback.
 
     A view factor reads its camera and each of its tags, two pybind11 calls a pose (~1 us each):
-    in an 8x8x8 batch solve, 62,000 reads.  The optimizer `load`s each values it is about to
-    evaluate the graph at; a factor given the table reads from it only when the values it is called
-    with *are* the loaded ones (the same Python object: GTSAM passes the caller's wrapper through),
-    and reads the values itself otherwise, so a stale or foreign table can cost time, never
-    correctness.  The values must not change while loaded (an optimizer's do not).  `track` fixes
-    which poses the table holds (a solve's start); a factor re-reads its rows when that changes."""
+    in an 8x8x8 batch solve, 62,000 reads.  The batch solve (`view_batch.ViewBatch`) `load`s each
+    values it is about to evaluate the graph at; a factor given the table reads from it only when
+    the values it is called with *are* the loaded ones (the same Python object: GTSAM passes the
+    caller's wrapper through), and reads the values itself otherwise, so a stale or foreign table
+    can cost time, never correctness.  The values must not change while loaded (an optimizer's do
+    not).  `track` fixes which poses the table holds (a solve's start); a factor re-reads its rows
+    when that changes."""
 
     def __init__(self) -> None:
         self.keys = np.zeros(0, np.uint64)
