@@ -44,7 +44,7 @@ from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSIC
                                   CornerSighting, PoseTable, chain_factor, corner_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
                                   undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
-from estimation.view_batch import BatchCost, ViewBatch
+from estimation.view_batch import TAGS_PER_FACTOR, BatchCost, ViewBatch
 from lab.core.geometry import Pose3, Rot3
 from lab.core.rig_calibration_file import RigCalibration
 from lab.core.structures.borg import BorgModel
@@ -783,14 +783,15 @@ class SfGraphSlam:
         return self._cal is not None and self.config.observation == "corners"
 
     def _batch_graph(self) -> gtsam.NonlinearFactorGraph:
-        """The graph the batch solve takes: the run's graph with each view's corner factors as one
-        factor (`rig_model.corner_view_factor`: the same error and whitened Jacobians, so the same
-        solve to round-off).  Levenberg-Marquardt calls every Python factor back at each
-        linearisation and error evaluation; one callback a view instead of one a tag, and the
-        view's arithmetic in one compiled call, halve the 3x3x3 survey's batch solve
-        (docs/benchmarks.md, "Speed").  iSAM2 keeps the single factors (see the factor's note).
-        Kept between solves and extended by what was added since: a view's factors all come in
-        its `add_view`, and the graph only grows."""
+        """The graph the batch solve takes: the run's graph with each view's corner factors
+        gathered into view factors of up to `view_batch.TAGS_PER_FACTOR` tags
+        (`rig_model.corner_view_factor`: the same error and whitened Jacobians, so the same solve
+        to round-off), evaluated together (`view_batch.ViewBatch`).  Levenberg-Marquardt calls
+        every Python factor back at each linearisation; one callback for several tags instead of
+        one a tag, and the views' arithmetic in one compiled call, more than halve the 3x3x3
+        survey's batch solve (docs/benchmarks.md, "Speed").  iSAM2 keeps the single factors (see
+        the factor's note).  Kept between solves and extended by what was added since: a view's
+        factors all come in its `add_view`, and the graph only grows."""
         if not self._view_factors():
             return self.graph
         corner = {f[0]: f for f in self._corner_factors[self._batch_corners:]}
@@ -805,7 +806,9 @@ class SfGraphSlam:
             views.setdefault((ck, basis is not None, robust_k), []).append(CornerSighting(tk, sk, u, local, sigma, basis))
         assert self._view_batch is not None
         for (ck, lensed, robust_k), sightings in views.items():
-            self._batch.add(self._view_batch.add(ck, sightings, robust_k, DISTORTION if lensed else None))
+            for a in range(0, len(sightings), TAGS_PER_FACTOR):
+                self._batch.add(self._view_batch.add(ck, sightings[a:a + TAGS_PER_FACTOR], robust_k,
+                                                     DISTORTION if lensed else None))
         self._batch_upto = self.graph.size()
         self._batch_corners = len(self._corner_factors)
         return self._batch

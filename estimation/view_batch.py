@@ -33,6 +33,16 @@ from estimation.rig_model import (CornerSighting, PoseTable, ViewLayout, _cal_ve
                                   view_layout)
 
 
+# tags a view factor takes at most (`SfGraphSlam._batch_graph` splits a view's tags into factors of
+# this many): a factor's Jacobian is one dense block over its camera and all its tags, and GTSAM's
+# elimination multiplies its zero blocks (tag i's rows against tag j's columns), while each factor
+# is one callback a linearisation.  The scaling study's surveys, Levenberg-Marquardt paired in one
+# process: 3 tags a factor against a whole view (6.2 tags on average at N = 8) 297 against 397 ms at
+# N = 8, 68 against 74 at N = 5, 13.0 against 14.1 at N = 3; 2 tags 311 ms and 4 tags 327 at N = 8,
+# 1 tag a factor (7,577 callbacks) 399 against a whole view's 414
+TAGS_PER_FACTOR = 3
+
+
 class ViewBatch:
     """The view factors of one batch graph (`add` each), evaluated together at a point (`prepare`,
     `error`) read from `table`, which the solve `track`s."""

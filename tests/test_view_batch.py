@@ -12,7 +12,7 @@ import pytest
 from estimation import levenberg_marquardt
 from estimation.fiducials import tag_object_points
 from estimation.rig_model import DISTORTION, CornerSighting, PoseTable, corner_view_factor, radial_basis
-from estimation.view_batch import BatchCost, ViewBatch
+from estimation.view_batch import TAGS_PER_FACTOR, BatchCost, ViewBatch
 from lab.core.geometry import Pose3, Rot3
 from test_corner_view_factor import CAL, K, _slam, _view
 from test_levenberg_marquardt import _params, _same
@@ -100,8 +100,9 @@ def test_a_view_added_after_a_solve_began_waits_for_the_next():
 
 
 def test_the_batch_solve_is_the_per_view_factors_solve_to_the_bit():
-    """The run graph's batch (the rig, print scales, the lens, Huber): `solve_batch` through the
-    view batch against Levenberg-Marquardt over one `corner_view_factor` a view."""
+    """The run graph's batch (the rig, print scales, the lens, Huber; views of up to eight tags
+    split into factors of three): `solve_batch` through the view batch against
+    Levenberg-Marquardt over one `corner_view_factor` a factor."""
     slam = _slam()
     slam._initialise_pending()
     start = gtsam.Values(slam.initial)
@@ -112,6 +113,9 @@ def test_the_batch_solve_is_the_per_view_factors_solve_to_the_bit():
         per_view.add(corner_view_factor(layout.camera_key, layout.sightings, slam._cal, layout.huber_k or None,
                                         layout.lens_key))
     assert per_view.size() == graph.size()
+    layouts = slam._view_batch.layouts
+    assert max(len(x.sightings) for x in layouts) <= TAGS_PER_FACTOR
+    assert len({x.camera_key for x in layouts}) < len(layouts)      # views split across factors
     assert any(s.scale_key is not None for x in slam._view_batch.layouts for s in x.sightings)
     assert any(x.lens_key is not None for x in slam._view_batch.layouts)
     cost = BatchCost(graph, slam._batch_others, slam._view_batch)
