@@ -1038,6 +1038,8 @@ class BorgProcedure:
                                 else "nominal priors"),
                 "observation": self.measure.slam.config.observation,
                 "simulated": self.bench.simulated, "modules": modules,
+                # the module 1-sigma each step's views were planned for (`borg_table` says how many reached it)
+                "sigma_target_m": self.precision.sigma_m,
                 "rejected_tags": sorted(self.measure.rejected_tags), "steps": len(modules),
                 "views": len(self.views_done), "rig_survey": self.rig_survey_result,
                 # simulation: the detector's corner error against the truth (per coordinate), the

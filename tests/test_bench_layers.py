@@ -64,6 +64,27 @@ def test_the_figures_count_per_layer_and_per_size():
     assert "| 2 | all |" in to_markdown({"command": "lab bench layers", "runs": 1, "wall_s": 40.0, "rows": rows})
 
 
+def test_the_stated_1_sigma_is_told_beside_the_planned_one_and_the_bound():
+    def mod(name, verdict, fault, sigma, planned, bound):
+        return {"name": name, "layer": 0, "fault": fault, "verdict": verdict, "views": 4, "error_m": 0.0002,
+                "sigma_m": sigma, "replanned": False, "planned_sigma_m": planned, "bound_m": bound}
+
+    mods = [mod("a", "ok", False, 0.0004, 0.0002, 0.00035), mod("b", "ok", False, 0.0003, 0.0002, 0.00025),
+            mod("c", "ok", True, 0.009, 0.009, 0.009),             # a fault passed `ok`: not a good module
+            mod("d", "uncertain", False, 0.009, 0.009, 0.009)]     # not passed `ok`
+    whole = aggregate([{"n": 2, "seed": 0, "wall_s": 1.0, "modules": mods, "peak_rss_mb": None,
+                        "slam_update_s_median": 0.01}])[0]
+    assert whole["sigma_m_mm_median"] == pytest.approx(0.35)
+    assert whole["planned_sigma_m_mm_median"] == pytest.approx(0.2)
+    assert whole["bound_m_mm_median"] == pytest.approx(0.3)
+    text = to_markdown({"command": "lab bench layers", "runs": 1, "wall_s": 1.0, "rows": [whole]})
+    assert "| 0.35 / 0.20 / 0.30 |" in text
+    # trials journaled before the plans' 1-sigma was kept
+    old = aggregate([{"n": 2, "seed": 0, "wall_s": 1.0, "peak_rss_mb": None, "slam_update_s_median": 0.01,
+                      "modules": [{k: v for k, v in m.items() if k not in ("planned_sigma_m", "bound_m")} for m in mods]}])[0]
+    assert old["planned_sigma_m_mm_median"] is None and old["sigma_m_mm_median"] == pytest.approx(0.35)
+
+
 def test_the_nees_is_read_whole_and_about_each_runs_frame():
     mods = [{"name": n, "layer": 0, "fault": fault, "verdict": "ok", "views": 4, "error_m": 0.0002, "sigma_m": 0.0004,
              "replanned": False, "nees": nees, **({"nees_frame": nf} if nf is not None else {})}

@@ -10,7 +10,7 @@ import subprocess
 from pathlib import Path
 
 from lab.core.imaging import IDEAL, scenario_tables
-from procedures.console import Console, ConsoleRecorder
+from procedures.console import Console, ConsoleRecorder, borg_table, sigma_target_line
 
 
 SCENARIO = """seed = 3
@@ -64,7 +64,25 @@ def test_a_redirected_borg_run_prints_steps_verdicts_and_warnings_as_they_happen
         assert column in header
     assert re.match(r"^1P\s+ok\s+\d+\.\d\d\s+\d+\.\d{3}\s+5/1\s+\d+\.\d\d", lines[table_at + 1])
     assert any(ln.startswith("dev: measured distance from the design") for ln in lines[table_at:])
+    # what the run's 1-sigma came to against the target its views were planned for
+    assert any(re.match(r"^1σ target 0\.25 mm: reached by \d+ of \d+ measured modules \(1σ median", ln)
+               for ln in lines[table_at:])
     assert len(lines) < 40
+
+
+def test_the_table_says_how_many_modules_reached_the_planned_1_sigma() -> None:
+    def mod(name, sigma, predicted):
+        return {"name": name, "verdict": "ok", "sigma_position_m": sigma, "predicted_sigma_m": predicted}
+
+    summary = {"sigma_target_m": 0.00025, "rejected_tags": [],
+               "modules": [mod("1P", 0.0002, 0.00021), mod("2D", 0.00033, 0.00024), mod("3D", 0.00041, 0.00022),
+                           {"name": "4S", "verdict": "unverified"}]}
+    line = sigma_target_line(summary)
+    assert line == ("1σ target 0.25 mm: reached by 1 of 3 measured modules (1σ median 0.33 mm, largest 0.41 mm; "
+                    "the plans predicted 0.22 mm median)")
+    assert line in borg_table(summary).splitlines()
+    assert sigma_target_line({k: v for k, v in summary.items() if k != "sigma_target_m"}) is None   # older runs
+    assert sigma_target_line({"sigma_target_m": 0.00025, "modules": [{"name": "4S", "verdict": "unverified"}]}) is None
 
 
 def test_a_redirected_truss_run_prints_a_line_per_step_and_explains_its_table(lab, tmp_path: Path, run_dir: Path) -> None:

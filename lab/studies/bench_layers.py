@@ -13,6 +13,9 @@ Figures per N and per layer (a module's layer: the cell row its nodes' mean heig
 - good-module position error against the simulated truth (median, max; and the max over those
   passed `ok`), |error| / stated 1-sigma (median), position NEES (mean; 3 when the 1-sigma is
   right), views per module, modules whose views were re-planned;
+- the stated 1-sigma of the good modules passed `ok` beside what their plans predicted and the
+  Cramer-Rao bound of the views taken (medians): whether the plans' target is what the
+  measurements reach;
 - the NEES about each run's frame: the good modules' errors share one rigid motion per run, the
   frame the turntable tags realise (`error_frame`), a single draw that can lift one run's NEES
   far above 3 while the 1-sigma is honest; with it taken off, what is left is each module's own;
@@ -177,7 +180,9 @@ def trial(out: Path, n: int, seed: int, speedup: float) -> dict[str, Any]:
         rows.append({"name": m["name"], "layer": layer_of(model, m["name"]), "fault": kind not in ("none", "good"),
                      "verdict": m["verdict"], "views": m.get("views"),
                      "error_m": m.get("position_error_m"), "sigma_m": m.get("sigma_position_m"),
-                     "replanned": "re-planned" in (m.get("reason") or ""), "nees": m.get("position_nees")})
+                     "replanned": "re-planned" in (m.get("reason") or ""), "nees": m.get("position_nees"),
+                     # the 1-sigma its views were planned to give, and their Cramer-Rao bound
+                     "planned_sigma_m": m.get("predicted_sigma_m"), "bound_m": m.get("bound_position_m")})
     frame = _frame(model, s["modules"], rows)
     # a resumed run's memory is its processes'
     return {"n": n, "seed": seed, "result": s["result"], "wall_s": wall, "modules": rows,
@@ -239,7 +244,17 @@ def _row(key: dict[str, Any], mods: list[dict[str, Any]]) -> dict[str, Any]:
             "ok_error_mm_max": max((m["error_m"] * 1e3 for m in read if m["verdict"] == OK), default=None),
             "ratio_median": float(np.median(ratio)) if ratio.size else None,
             "nees_mean": _mean(good, "nees"), "nees_frame_mean": _mean(good, "nees_frame"),
-            "views_per_module": float(np.mean([m["views"] or 0 for m in mods])) if mods else None}
+            "views_per_module": float(np.mean([m["views"] or 0 for m in mods])) if mods else None,
+            # the good modules passed `ok`: the graph's 1-sigma, what their plans predicted, the bound
+            **{f"{key}_mm_median": _median_mm([m for m in good if m["verdict"] == OK], key)
+               for key in ("sigma_m", "planned_sigma_m", "bound_m")}}
+
+
+def _median_mm(mods: list[dict[str, Any]], key: str) -> float | None:
+    """The median of a figure over the modules that have it, in mm (None if none has: trials
+    journaled before it was kept)."""
+    values = [m[key] for m in mods if m.get(key) is not None]
+    return float(np.median(values) * 1e3) if values else None
 
 
 def aggregate(trials: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -271,9 +286,9 @@ def to_markdown(res: dict[str, Any]) -> str:
     lines = [study_heading(res), "",
              "| N | layer | runs | modules | unverified | uncertain | false flags | faults flagged | re-planned | "
              "error median / max (mm) | max of `ok` (mm) | \\|err\\|/1σ median | NEES mean (3) | NEES about the run's frame | "
-             "frame offset (mm) / rotation (mrad), worst run | views / module | run s / module | "
-             "SLAM step (ms) | peak memory (MB) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "frame offset (mm) / rotation (mrad), worst run | 1σ / planned / bound, `ok` median (mm) | "
+             "views / module | run s / module | SLAM step (ms) | peak memory (MB) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
         whole = r["layer"] == "all"
         runs = f"{r['runs']} ({r['resumed']} resumed)" if r.get("resumed") else str(r["runs"])
@@ -283,6 +298,8 @@ def to_markdown(res: dict[str, Any]) -> str:
             f"{cell(r['error_mm_median'])} / {cell(r['error_mm_max'])} | {cell(r.get('ok_error_mm_max'))} | {cell(r['ratio_median'])} | "
             f"{cell(r.get('nees_mean'), '.1f')} | {cell(r.get('nees_frame_mean'), '.1f')} | "
             f"{cell(r.get('frame_offset_mm_max') if whole else None)} / {cell(r.get('frame_rotation_mrad_max') if whole else None)} | "
+            f"{cell(r.get('sigma_m_mm_median'))} / {cell(r.get('planned_sigma_m_mm_median'))} / "
+            f"{cell(r.get('bound_m_mm_median'))} | "
             f"{cell(r['views_per_module'], '.1f')} | {cell(r.get('wall_s_per_module') if whole else None, '.1f')} | "
             f"{cell(r.get('slam_update_ms_median') if whole else None, '.1f')} | "
             f"{cell(r.get('peak_rss_mb') if whole else None, '.0f')} |")
