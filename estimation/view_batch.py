@@ -2,10 +2,11 @@
 linearisation every view's Jacobian, in one compiled call at a point instead of one Python callback
 a view.
 
-`rig_model.corner_view_factor` gave the batch one factor a view.  Levenberg-Marquardt evaluates the
-graph's error at its start and at every trial step, and linearises it once an iteration; through
-the factors that is one callback a view each time (~12 us of callback, numba dispatch and pose reads
-for a few us of arithmetic: at 8x8x8, 1,230 views, ~25 ms an error evaluation).  A `ViewBatch`
+`rig_model.corner_view_factor` gave the batch one factor for a view's tags (since, up to
+`TAGS_PER_FACTOR` of them).  Levenberg-Marquardt evaluates the graph's error at its start and at
+every trial step, and linearises it once an iteration; through the factors that is one callback a
+factor each time (~12 us of callback, numba dispatch and pose reads for a few us of arithmetic: at
+8x8x8, 1,230 views, ~20 ms an error evaluation).  A `ViewBatch`
 keeps every view's constants in flat arrays (`rig_model.ViewLayout`, concatenated):
 
 - `error` is the views' part of the graph's error, 0.5 |e|^2 summed, from one call of
@@ -155,8 +156,14 @@ class ViewBatch:
         self.table.load(values)
         if self._generation != self.table.generation:
             self._rows()
-            self._scale_rows = np.where(self._has_scale, np.searchsorted(self._scale_keys, self._sighting_scale_keys),
-                                        -1).astype(np.int64)
+            # each sighting's print scale as a row of the values' scale variables (GTSAM would
+            # refuse a missing one; the batch reads them itself, so it checks)
+            at = np.searchsorted(self._scale_keys, self._sighting_scale_keys)[self._has_scale]
+            if at.size and (at.max() >= len(self._scale_keys) or
+                            not np.array_equal(self._scale_keys[at], self._sighting_scale_keys[self._has_scale])):
+                raise ValueError("a view factor's print-scale variable is not in the values")
+            self._scale_rows = np.full(len(self._has_scale), -1, np.int64)
+            self._scale_rows[self._has_scale] = at
         # every scale variable in one call: `extractVectors` returns them in key order
         scales = (gtsam.utilities.extractVectors(values, chr(self._scale_char))[:, 0] if len(self._scale_keys)
                   else np.zeros(0))

@@ -81,6 +81,17 @@ def test_each_view_factor_of_a_batch_is_its_own_view_factor_to_the_bit(lens):
     same(values)
 
 
+def test_a_batch_refuses_values_without_a_print_scale_its_views_read():
+    values, views = _views(False)
+    batch = ViewBatch(CAL, PoseTable())
+    for ck, s, k in views:
+        batch.add(ck, s, k)
+    values.erase(S(20))
+    batch.track(values)
+    with pytest.raises(ValueError, match="print-scale variable is not in the values"):
+        batch.prepare(values, False)
+
+
 def test_a_view_added_after_a_solve_began_waits_for_the_next():
     values, views = _views(False)
     batch = ViewBatch(CAL, PoseTable())
