@@ -799,8 +799,9 @@ class SfGraphSlam:
         for i in range(self._batch_upto, self.graph.size()):
             f = corner.get(i)
             if f is None:
-                self._batch.add(self.graph.at(i))
-                self._batch_others.add(self.graph.at(i))
+                other = self.graph.at(i)
+                self._batch.add(other)
+                self._batch_others.add(other)
                 continue
             _, _, ck, tk, sk, u, local, basis, sigma, robust_k = f
             views.setdefault((ck, basis is not None, robust_k), []).append(CornerSighting(tk, sk, u, local, sigma, basis))
