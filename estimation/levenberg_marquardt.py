@@ -53,9 +53,9 @@ def optimize(graph: gtsam.NonlinearFactorGraph, start: gtsam.Values, params: gts
     """Levenberg-Marquardt from `start`: GTSAM's `optimize()`, step for step.  Returns the solution
     and the number of iterations.  `cost` evaluates the graph's error and linearisation (default:
     the graph's own; it must be the graph's to round-off); settings that go to GTSAM's optimizer
-    do not use it.  A graph of C++ factors only
-    (`python_factors` False) has no copies to avoid and goes to GTSAM's optimizer, which builds
-    its damping without a Python call a variable (the same result)."""
+    do not use it.  A graph of C++ factors only (`python_factors` False) has no copies to avoid and
+    goes to GTSAM's optimizer, which builds its damping without a Python call a variable (the same
+    result)."""
     if (not python_factors or params.getDiagonalDamping() or not params.getUseFixedLambdaFactor()
             or params.getOrderingType() != "COLAMD" or params.getLinearSolverType() != "MULTIFRONTAL_CHOLESKY"):
         return _gtsam_optimize(graph, start, params)
@@ -97,13 +97,14 @@ class State:
         self.inner = 0
         self.ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)
         # the damping: a prior on every variable (`buildDampedSystem`), made once and given each
-        # lambda's sigma in place (half the cost of new factors: ~2 us a variable a lambda)
-        # (each made with one shared identity, zero vector and unit model: `_damping_priors` gives
+        # lambda's sigma in place (half the cost of new factors: ~2 us a variable a lambda); each is
+        # made with one identity, zero vector and unit model a dimension (`_damping_priors` gives
         # every prior its own model before its first use; ~8 us a variable less than new ones)
         dims = sorted(self.values.dims().items())
-        shared = {dim: (np.eye(dim), np.zeros(dim), gtsam.noiseModel.Unit.Create(dim)) for dim in {d for _, d in dims}}
+        sizes = {dim for _, dim in dims}
+        shared = {dim: (np.eye(dim), np.zeros(dim), gtsam.noiseModel.Unit.Create(dim)) for dim in sizes}
         self._priors = [gtsam.JacobianFactor(key, *shared[dim]) for key, dim in dims]
-        self._sigmas = {dim: np.ones(dim) for _, dim in dims}       # one array a dimension, shared
+        self._sigmas = {dim: np.ones(dim) for dim in sizes}       # one array a dimension, shared
         self._prior_sigmas = [self._sigmas[dim] for _, dim in dims]
         self._damped_at: float | None = None
 

@@ -41,7 +41,7 @@ from estimation.corner_noise import AbsoluteResiduals, CornerNoise
 from estimation.fiducials import Detection, tag_object_points
 from estimation import corner_kernel, levenberg_marquardt
 from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
-                                  CornerSighting, PoseTable, chain_factor, corner_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
+                                  CornerSighting, chain_factor, corner_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
                                   undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from estimation.view_batch import TAGS_PER_FACTOR, BatchCost, ViewBatch
@@ -204,9 +204,8 @@ class SfGraphSlam:
         self._corner_factors: list[tuple] = []
         self._batch = gtsam.NonlinearFactorGraph()      # the batch solve's graph (`_batch_graph`), so far
         self._batch_others = gtsam.NonlinearFactorGraph()   # ... its factors other than the view factors
-        self._pose_table = PoseTable()                  # its view factors' pose reads (`rig_model.PoseTable`)
-        # ... and the view factors, evaluated together (`view_batch.ViewBatch`)
-        self._view_batch = None if self._cal is None else ViewBatch(self._cal, self._pose_table)
+        # ... and its view factors, evaluated together (`view_batch.ViewBatch`)
+        self._view_batch = None if self._cal is None else ViewBatch(self._cal)
         self._batch_upto = self._batch_corners = 0
         self._residuals_done = 0
         self._face_on: list[np.ndarray] = []            # each solve's new face-on residuals (px)

@@ -46,12 +46,12 @@ TAGS_PER_FACTOR = 3
 
 class ViewBatch:
     """The view factors of one batch graph (`add` each), evaluated together at a point (`prepare`,
-    `error`) read from `table`, which the solve `track`s."""
+    `error`) read from its pose table, which the solve `track`s."""
 
-    def __init__(self, fixed: gtsam.Cal3_S2, table: PoseTable) -> None:
+    def __init__(self, fixed: gtsam.Cal3_S2) -> None:
         self.cal = _cal_vector(fixed)
         self.fixed = fixed
-        self.table = table
+        self.table = PoseTable()
         self.layouts: list[ViewLayout] = []
         self.values: gtsam.Values | None = None     # the point `prepare` last evaluated the views at
         self.jacobians = False                      # ... and whether with their Jacobians

@@ -195,9 +195,10 @@ def test_the_batch_solve_with_view_factors_is_the_solve_with_the_single_factors(
     assert grown.size() > size
     assert grown.error(slam.initial) == pytest.approx(slam.graph.error(slam.initial), rel=1e-12)
     # ... and solves as the single factors do, its pose table tracking the new poses
-    generation = slam._pose_table.generation
+    table = slam._view_batch.table
+    generation = table.generation
     estimate = slam.solve_batch()
-    assert slam._pose_table.generation == generation + 1 and slam._pose_table.values is None
+    assert table.generation == generation + 1 and table.values is None
     reference = gtsam.LevenbergMarquardtOptimizer(slam.graph, slam.initial, params).optimize()
     for t in sorted(slam.tags):
         a, b = estimate.atPose3(slam.key(t)), reference.atPose3(slam.key(t))

@@ -11,7 +11,7 @@ import pytest
 
 from estimation import levenberg_marquardt
 from estimation.fiducials import tag_object_points
-from estimation.rig_model import DISTORTION, CornerSighting, PoseTable, corner_view_factor, radial_basis
+from estimation.rig_model import DISTORTION, CornerSighting, corner_view_factor, radial_basis
 from estimation.view_batch import TAGS_PER_FACTOR, BatchCost, ViewBatch
 from lab.core.geometry import Pose3, Rot3
 from test_corner_view_factor import CAL, K, _slam, _view
@@ -49,8 +49,7 @@ def _rows(factor: gtsam.CustomFactor, values: gtsam.Values) -> tuple[float, np.n
 @pytest.mark.parametrize("lens", [False, True])
 def test_each_view_factor_of_a_batch_is_its_own_view_factor_to_the_bit(lens):
     values, views = _views(lens)
-    table = PoseTable()
-    batch = ViewBatch(CAL, table)
+    batch = ViewBatch(CAL)
     lens_key = DISTORTION if lens else None
     ours = [batch.add(ck, s, k, lens_key) for ck, s, k in views]
     theirs = [corner_view_factor(ck, s, CAL, k, lens_key) for ck, s, k in views]
@@ -83,7 +82,7 @@ def test_each_view_factor_of_a_batch_is_its_own_view_factor_to_the_bit(lens):
 
 def test_a_batch_refuses_values_without_a_print_scale_its_views_read():
     values, views = _views(False)
-    batch = ViewBatch(CAL, PoseTable())
+    batch = ViewBatch(CAL)
     for ck, s, k in views:
         batch.add(ck, s, k)
     values.erase(S(20))
@@ -94,7 +93,7 @@ def test_a_batch_refuses_values_without_a_print_scale_its_views_read():
 
 def test_a_view_added_after_a_solve_began_waits_for_the_next():
     values, views = _views(False)
-    batch = ViewBatch(CAL, PoseTable())
+    batch = ViewBatch(CAL)
     for ck, s, k in views[:3]:
         batch.add(ck, s, k)
     batch.track(values)
