@@ -53,6 +53,7 @@ MAX_REPLANS = 2          # rounds of views re-planned for tags a step's views di
 # frame's share, or a camera's noise floor, which more views of the module hardly reduce: on a
 # poor camera a second round took 0.71 mm to 0.71 and 0.56 to 0.48).
 OK_SIGMA_FACTOR = 2.0
+FLOOR_WINDOW = 8          # the floor a plan assumes: the median over this many modules measured last
 MAX_CONFIRMS = 2
 CONFIRM_GAIN = 0.25
 _STREAM_CAMERA = 8200    # simulated camera noise per step: [seed, _STREAM_CAMERA, step, attempt]
@@ -153,13 +154,6 @@ class BorgProcedure:
         self.precision = PrecisionTarget(sigma_m=sigma_target_mm * 1e-3 if sigma_target_mm is not None else ver.sigma_target_m,
                                          max_views=max_views if max_views is not None else ver.max_views,
                                          corner_sigma_px=corner_sigma)
-        placed: list[str] = []
-        self.surveys: dict[str, SurveyPlan] = {}
-        for mod in modules:
-            placed.append(mod.name)
-            self.surveys[mod.name] = self.planner.plan(mod.name, placed, self.precision)
-        # modules whose tags no candidate view sees (at their step, with what is placed in front)
-        self.unobservable = {name: plan.unobservable for name, plan in self.surveys.items() if plan.unobservable}
         self.allow_unobservable = bool(allow_unobservable)
         self._unobservable_warned = False
         self._lift_at: float | None = None       # where the lift is known to be (None: not asked yet)
@@ -188,6 +182,18 @@ class BorgProcedure:
             self.calibration_source = f"calibration {cal_file}"
             self._take_measured(estimator_config, self.rig_calibration.corner_sigma_px,
                                 self.rig_calibration.tag_scale_sigma, self.rig_calibration.repeatability_scale)
+        # each module's views, planned from the design with the corner noise the graph will read its
+        # sightings with: the calibration file's, when there is one (a survey's measurement comes
+        # later, and the modules not yet measured are planned again with it: `_plan_of`)
+        self.surveys: dict[str, SurveyPlan] = {}
+        self._placed_at_plan: dict[str, list[str]] = {}
+        placed: list[str] = []
+        for mod in modules:
+            placed.append(mod.name)
+            self._placed_at_plan[mod.name] = list(placed)
+            self.surveys[mod.name] = self.planner.plan(mod.name, placed, self.precision)
+        # modules whose tags no candidate view sees (at their step, with what is placed in front)
+        self.unobservable = {name: plan.unobservable for name, plan in self.surveys.items() if plan.unobservable}
         self.rig_survey = (self.rig_calibration is None) if rig_survey is None else bool(rig_survey)
         self.uncalibrated = uncalibrated
         if uncalibrated:
@@ -200,6 +206,10 @@ class BorgProcedure:
         self._row_header_shown = False
         self._rejected_reported: set[int] = set()
         self._plan_notes: dict[str, str] = {}            # module -> why its plan was made again before its views
+        # each measured module's floor (m^2): its stated 1-sigma squared less what its own views
+        # were predicted to give (`_plan_floor`); the plans of the modules after it combine their
+        # views' share with the recent ones' median
+        self._floor_m2: list[float] = []
         if observation is not None:
             estimator_config["observation"] = observation
         self.measure = Measurement(self.model, self.intrinsics, estimator_config, rig=self._rig_model(),
@@ -449,6 +459,10 @@ class BorgProcedure:
         self.rig_geometry = with_repeatability_scale(self._datasheet_geometry, repeatability_scale)
         if not self._corner_sigma_given and math.isfinite(corner_sigma_px):
             config["corner_sigma_px"] = float(corner_sigma_px)
+            # the plans predict each view's share with the graph's corner noise: planned with the
+            # rig file's assumption (0.02 px) where the survey measured 0.031, a 3x3x3's plans
+            # promised 0.23 mm median that the same views give 0.28 mm at the measured noise
+            self.precision = replace(self.precision, corner_sigma_px=float(corner_sigma_px))
         if not self._tag_scale_given and math.isfinite(tag_scale_sigma) and config.get("tag_scale_sigma", 0) > 0:
             config["tag_scale_sigma"] = float(tag_scale_sigma)
 
@@ -485,14 +499,17 @@ class BorgProcedure:
         verdict is `uncertain`, or `ok` with a 1-sigma over `OK_SIGMA_FACTOR` times the step's
         target (`needs_confirming`).  The last round's verdict, with what only the procedure
         knows (and what the re-planning tried), is the module's record."""
-        plan = self._checked_plan(name, self.surveys[name], run)
+        plan = self._checked_plan(name, self._plan_of(name), run)
         taken: list[View] = []
         replans: list[str] = []          # what each re-plan was for and what it tried
         rnd = confirms = 0
         confirmed_from: float | None = None      # the ok's 1-sigma before the last confirming round
+        own_info = np.zeros((6, 6))       # the views' own information, as planned (`_plan_floor`)
         while True:
             result = self._measure_round(spec, run, name, attempt, rnd, plan.views, len(taken))
             taken += plan.views
+            own_info += self.planner._information(name, plan.views, dict(zip(plan.views, plan.expected)),
+                                                  self.precision)
             budget = self.precision.max_views - len(taken)
             missing = self._missing_tags(name, result, plan)
             if missing and budget > 0 and len(replans) < MAX_REPLANS:
@@ -543,11 +560,42 @@ class BorgProcedure:
             reason = f"the rig cannot observe it (no candidate view sees tag {tags}); {reason}".rstrip("; ")
         result = replace(result, reason=reason, views=len(taken), attempts=attempt,
                          predicted_sigma_m=self.surveys[name].predicted_sigma_m)
+        self._plan_floor(name, result, own_info)
         if self.bench.simulated:
             # the bound of the graph the verdict read, before the module's relations join
             result = replace(result, truth=self._truth_error(result), bound=self._bound(name))
         self.measure.finish(name)
         return result
+
+    def _planning(self) -> PrecisionTarget:
+        """What a module's plan aims at: the run's target, at the graph's corner noise, with the
+        floor the modules measured last showed (none before the first is measured)."""
+        recent = self._floor_m2[-FLOOR_WINDOW:]
+        return replace(self.precision, floor_sigma_m=math.sqrt(float(np.median(recent))) if recent else 0.0)
+
+    def _plan_of(self, name: str) -> SurveyPlan:
+        """The module's plan from the design, made again when what its accuracy pass assumed has
+        changed since (the rig survey measured the corner noise; the measured modules showed the
+        floor): the same coverage, the accuracy pass as the module's sightings will be read."""
+        plan = self.surveys[name]
+        want = self._planning()
+        if plan.corner_sigma_px is not None and (plan.corner_sigma_px, plan.floor_sigma_m) != (want.corner_sigma_px,
+                                                                                             want.floor_sigma_m):
+            plan = self.planner.plan(name, self._placed_at_plan[name], want)
+            self.surveys[name] = plan
+        return plan
+
+    def _plan_floor(self, name: str, result: Verdict, own_info: np.ndarray) -> None:
+        """The module's floor, from its verdict: its stated 1-sigma squared less the share its own
+        views were predicted to give (`own_info`, the information of every view taken, as planned,
+        at the graph's corner noise).  What is left is what no view of it reduced: the frame and
+        the rig, which grow with the height (0 at the bottom of a 10x10x10 to 0.31 mm at its top
+        layer), and whatever the views missed of what they were planned to show."""
+        if result.sigma_m is None or not math.isfinite(result.sigma_m):
+            return
+        own = self.planner.predicted_sigma(name, own_info)
+        if math.isfinite(own):
+            self._floor_m2.append(max(result.sigma_m ** 2 - own ** 2, 0.0))
 
     def _checked_plan(self, name: str, plan: SurveyPlan, run: RunContext) -> SurveyPlan:
         """The module's plan, made before anything moved from the design, checked against the
@@ -567,7 +615,7 @@ class BorgProcedure:
         hidden = struts.hidden_by_struts(name, placed, plan.views, plan.expected)
         if not hidden:
             return plan
-        again = self._adapted_planner(name).plan(name, placed, self.precision)
+        again = self._adapted_planner(name).plan(name, placed, self._planning())
         if not again.views:
             return plan
         lowered = ", ".join(m for m in placed if m in short)
@@ -972,12 +1020,15 @@ class BorgProcedure:
                 # the survey's inputs, not its result: a resumed run solves them again and gets the
                 # same calibration bit for bit (a rounded copy would move every later estimate)
                 "rig_survey_views": self.rig_survey_views,
-                "rig_survey": self.rig_survey_result}
+                "rig_survey": self.rig_survey_result,
+                # the measured modules' floors: a resumed run plans the rest as this one would
+                "plan_floor_m2": list(self._floor_m2)}
 
     def restore(self, state: dict[str, Any], steps_done: list[StepSpec], run: RunContext) -> None:
         """Replay the completed steps' views into a fresh estimator, step by step as they happened,
         so the estimate (and every later verdict) is the one an uninterrupted run would have."""
         self.views_done = list(state.get("views", []))
+        self._floor_m2 = [float(x) for x in state.get("plan_floor_m2", [])]
         self._true_cameras, self._corner_sq = [], []
         for v in self.views_done:
             self._take_truth(v)

@@ -149,6 +149,14 @@ class PrecisionTarget:
     # independent between views: the prediction is of the views' own contribution)
     camera_sigma_m: float = 0.0001
     camera_sigma_rad: float = np.radians(0.005)
+    # the module position 1-sigma no view of the module reduces: the structure frame the turntable
+    # tags fix and the rig's calibration, common to every view (the run measures it from its own
+    # verdicts: `procedures.borg`, `plan_floor`).  A plan predicts its views' share combined with it.
+    floor_sigma_m: float = 0.0
+
+    def total_sigma(self, own_sigma_m: float) -> float:
+        """The module's predicted 1-sigma: its own views' share and the floor, independent."""
+        return float(np.hypot(own_sigma_m, self.floor_sigma_m))
 
     @property
     def camera_covariance(self) -> np.ndarray:
@@ -162,6 +170,9 @@ class SurveyPlan:
     expected: list[list[int]]              # predicted visible tags per view
     unobservable: list[int] = field(default_factory=list)   # new tags no candidate view sees
     predicted_sigma_m: float | None = None  # the module's position 1-sigma the views should give
+    # what that prediction assumed (None: no accuracy pass): the corner noise and the floor
+    corner_sigma_px: float | None = None
+    floor_sigma_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -640,18 +651,19 @@ class SurveyPlanner:
         predicted = None
         if precision is not None:
             known = self._information(module, chosen, sight, precision)
-            extra, predicted = self._accurate(module, [v for v in sight if v not in chosen], sight, precision,
-                                              known if info is None else known + info,
-                                              precision.max_views - len(chosen))
+            extra, predicted, stalled = self._accurate(module, [v for v in sight if v not in chosen], sight, precision,
+                                                       known if info is None else known + info,
+                                                       precision.max_views - len(chosen))
             chosen += extra
-            if predicted > precision.sigma_m and len(chosen) < precision.max_views:
-                extra, predicted = self._accurate_beyond(module, placed_modules, present, new, chosen, sight,
-                                                         precision, info, excluded)
+            if predicted > precision.sigma_m and len(chosen) < precision.max_views and not stalled:
+                extra, predicted, _ = self._accurate_beyond(module, placed_modules, present, new, chosen, sight,
+                                                            precision, info, excluded)
                 chosen += extra
         chosen.sort(key=_order)
         expected = [sight[v] if v in sight else self.visible(v, present) for v in chosen]
         seen_new = set().union(*map(set, expected)) if expected else set()
-        return SurveyPlan(module, chosen, expected, [t for t in new if t not in seen_new], predicted)
+        return SurveyPlan(module, chosen, expected, [t for t in new if t not in seen_new], predicted,
+                          *((precision.corner_sigma_px, precision.floor_sigma_m) if precision is not None else (None, None)))
 
     def more_views(self, module: str, placed_modules: Sequence[str], taken: Sequence[View],
                    tag_covariance: np.ndarray | None, precision: PrecisionTarget, budget: int) -> SurveyPlan:
@@ -665,23 +677,27 @@ class SurveyPlanner:
                             [v for v in self._seeing(self._facing(module), self.model.module_by_name[module].tags)
                              if v not in taken_set])
         info = np.zeros((6, 6)) if tag_covariance is None else np.linalg.inv(tag_covariance)
-        views, predicted = self._accurate(module, list(sight), sight, precision, info, budget)
+        # the graph's covariance holds the floor already (as information: these more views are
+        # predicted to shrink it too, as before the floor was known)
+        precision = replace(precision, floor_sigma_m=0.0)
+        views, predicted, _ = self._accurate(module, list(sight), sight, precision, info, budget)
         if predicted > precision.sigma_m and len(views) < budget:
             tags = list(self.model.module_by_name[module].tags)
-            extra, predicted = self._accurate_beyond(module, placed_modules, present, tags, views, sight,
-                                                     replace(precision, max_views=budget), info, taken_set)
+            extra, predicted, _ = self._accurate_beyond(module, placed_modules, present, tags, views, sight,
+                                                        replace(precision, max_views=budget), info, taken_set)
             views += extra
         views.sort(key=_order)
-        return SurveyPlan(module, views, [sight[v] for v in views], [], predicted)
+        return SurveyPlan(module, views, [sight[v] for v in views], [], predicted, precision.corner_sigma_px,
+                          precision.floor_sigma_m)
 
     def _accurate_beyond(self, module: str, placed_modules: Sequence[str], present: set[int], tags: list[int],
                          chosen: list[View], sight: dict[View, list[int]], precision: PrecisionTarget,
-                         info: np.ndarray | None, excluded: set[View]) -> tuple[list[View], float]:
+                         info: np.ndarray | None, excluded: set[View]) -> tuple[list[View], float, bool]:
         """When the candidate views cannot reach the target (a tag few of them see: at N = 6 the
         close-out struts 135S and 137S, tag in 2 of 1288 facing views, came out `uncertain` at a
         1-sigma of 1-2 mm and no further view was planned): the accuracy pass again over the rest of
         the lift's travel and the wider looks (`_other_views`), from what the chosen views give.
-        `sight` gains the views found; returns (views added, predicted sigma)."""
+        `sight` gains the views found; returns `_accurate`'s (views added, predicted sigma, stalled)."""
         others = [v for v in self._other_views if v not in excluded and v not in sight]
         more = self._sight(module, placed_modules, present, self._seeing(self._facing(module, others), tags))
         sight.update({v: seen for v, seen in more.items() if set(seen) & set(tags)})
@@ -896,23 +912,32 @@ class SurveyPlanner:
         return np.where(observed, out, np.inf)
 
     def _accurate(self, module: str, candidates: list[View], sight: dict[View, list[int]],
-                  precision: PrecisionTarget, info: np.ndarray, budget: int) -> tuple[list[View], float]:
-        """Greedy: the view that shrinks the predicted sigma most, until the target or the budget."""
+                  precision: PrecisionTarget, info: np.ndarray, budget: int) -> tuple[list[View], float, bool]:
+        """Greedy: the view that shrinks the predicted sigma (the views' share with the floor) most,
+        until the target, the budget, or -- with a floor -- a view that would shrink it by less than
+        MIN_VIEW_GAIN: where the floor is most of the sigma, more views of the module cannot help
+        (the top layers of a 10x10x10: a floor of 0.31 mm against the 0.25 mm target).  Returns
+        (views, predicted sigma, stalled: stopped for that)."""
         gains = {v: self._view_information(module, v, sight, precision) for v in candidates}
         gains = {v: g for v, g in gains.items() if g.any()}
         chosen: list[View] = []
-        sigma = self.predicted_sigma(module, info)
+        sigma = precision.total_sigma(self.predicted_sigma(module, info))
         while sigma > precision.sigma_m and len(chosen) < budget and gains:
             views = list(gains)
             sigmas = self._predicted_sigmas(module, info + np.stack([gains[v] for v in views]))
-            best = min(range(len(views)), key=lambda i: (sigmas[i], abs(views[i].turntable_rad)))
-            best = views[best]
+            i = min(range(len(views)), key=lambda i: (sigmas[i], abs(views[i].turntable_rad)))
+            if precision.floor_sigma_m > 0 and precision.total_sigma(float(sigmas[i])) > (1 - MIN_VIEW_GAIN) * sigma:
+                return chosen, sigma, True
+            best = views[i]
             info = info + gains.pop(best)
             chosen.append(best)
-            sigma = self.predicted_sigma(module, info)
-        return chosen, sigma
+            sigma = precision.total_sigma(self.predicted_sigma(module, info))
+        return chosen, sigma, False
 
 
+# a view is planned for accuracy only if it shrinks the module's predicted 1-sigma by this fraction
+# (with a floor known: without one, every view shrinks it as 1/sqrt(views))
+MIN_VIEW_GAIN = 0.10
 MISSED_TURN_RAD = np.radians(10.0)    # a view this close in turntable angle to one that missed a tag
 STRUT_MARGIN_M = 0.005                # a line of sight this much clear of a strut's surface still counts as hidden
 # the node hubs the struts meet at (the design's; the simulated truss draws the same size)
