@@ -149,9 +149,9 @@ def confirm_views_line(name: str, sigma_m: float, target_m: float, views: int) -
 
 def sigma_target_line(summary: dict[str, Any]) -> str | None:
     """How many measured modules reached the 1-sigma their views were planned for, beside what the
-    plans predicted: a plan predicts from its views alone, and what no view of the module reduces
-    (the structure frame the turntable tags fix, the rig's calibration) sits in the graph's 1-sigma
-    only.  None for a summary without a target (older runs) or without a measured module."""
+    plans predicted (their views' share with the floor the modules before them showed: where the
+    floor is over the target, a plan stops short of it and says so).  None for a summary without a
+    target (older runs) or without a measured module."""
     target = summary.get("sigma_target_m")
     measured = [m for m in summary.get("modules", []) if m.get("sigma_position_m") is not None]
     if target is None or not measured:
