@@ -28,8 +28,9 @@ def _without_lift(text: str) -> str:
 
 def test_a_4x4x4_run_on_the_default_rig_uses_the_lift(lab, run_dir):
     """`--n 4` on the default rig (its borg_n is 3): the simulated world is the 4x4x4, the survey
-    looks from lift heights (the rim tags from below the home height, 4D also from above), the
-    graph calibrates the lift's axis with the rest, and every module is verified."""
+    looks from lift heights (the rim tags from below the home height), the graph calibrates the
+    lift's axis with the rest, and every module is verified.  (4D was also seen from above until
+    the plans knew the floor, stop 45: that view no longer shrinks its predicted 1-sigma by a tenth.)"""
     out = run_dir
     r = lab(["run", "borg", "--n", "4", "--auto", "--quiet", "--modules", "6", "--no-rig-survey", "--speedup", "40",
              "--out", str(out)])
@@ -40,9 +41,7 @@ def test_a_4x4x4_run_on_the_default_rig_uses_the_lift(lab, run_dir):
     assert max(m["position_error_m"] for m in s["modules"]) < 0.003
     views = json.loads((out / "checkpoint.json").read_text())["state"]["views"]
     heights = {v["lift_m"] for v in views}
-    assert 0.0 in heights and min(heights) < 0 and max(heights) > 0
-    lifted = [v for v in views if v["lift_m"] > 0]
-    assert lifted and {v["module"] for v in lifted} >= {"4D"}
+    assert 0.0 in heights and min(heights) < 0
     # the lift really moved there: MOVE commands on its serial line, each tagged
     sent = [m.message.data for m in iter_messages(out / "run.mcap")
             if m.topic == topics.COMMS and m.message.device == "lift" and m.message.direction == "tx"]
