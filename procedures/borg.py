@@ -508,8 +508,7 @@ class BorgProcedure:
         while True:
             result = self._measure_round(spec, run, name, attempt, rnd, plan.views, len(taken))
             taken += plan.views
-            own_info += self.planner._information(name, plan.views, dict(zip(plan.views, plan.expected)),
-                                                  self.precision)
+            own_info += self.planner.plan_information(plan, self.precision)
             budget = self.precision.max_views - len(taken)
             missing = self._missing_tags(name, result, plan)
             if missing and budget > 0 and len(replans) < MAX_REPLANS:

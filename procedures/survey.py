@@ -151,7 +151,7 @@ class PrecisionTarget:
     camera_sigma_rad: float = np.radians(0.005)
     # the module position 1-sigma no view of the module reduces: the structure frame the turntable
     # tags fix and the rig's calibration, common to every view (the run measures it from its own
-    # verdicts: `procedures.borg`, `plan_floor`).  A plan predicts its views' share combined with it.
+    # verdicts: `procedures.borg`, `_plan_floor`).  A plan predicts its views' share combined with it.
     floor_sigma_m: float = 0.0
 
     def total_sigma(self, own_sigma_m: float) -> float:
@@ -884,6 +884,11 @@ class SurveyPlanner:
     def _information(self, module: str, views: Sequence[View], sight: dict[View, list[int]],
                      precision: PrecisionTarget) -> np.ndarray:
         return sum((self._view_information(module, v, sight, precision) for v in views), np.zeros((6, 6)))
+
+    def plan_information(self, plan: SurveyPlan, precision: PrecisionTarget) -> np.ndarray:
+        """The information (6x6) `plan`'s views give its module's verdict tag, each view with the
+        tags it was planned to show: what a run sets against the 1-sigma its graph then states."""
+        return self._information(plan.module, plan.views, dict(zip(plan.views, plan.expected)), precision)
 
     def predicted_sigma(self, module: str, info: np.ndarray) -> float:
         cov = covariance_from_information(info)

@@ -31,7 +31,7 @@ def _planner() -> tuple[SurveyPlanner, list[str]]:
 
 
 def _own(p: SurveyPlanner, plan: SurveyPlan, target: PrecisionTarget) -> float:
-    return p.predicted_sigma(MODULE, p._information(MODULE, plan.views, dict(zip(plan.views, plan.expected)), target))
+    return p.predicted_sigma(MODULE, p.plan_information(plan, target))
 
 
 def test_a_plan_predicts_its_views_share_with_the_floor_and_stops_where_views_cannot_help():
@@ -48,7 +48,7 @@ def test_a_plan_predicts_its_views_share_with_the_floor_and_stops_where_views_ca
     assert plan.predicted_sigma_m > floored.sigma_m and len(plan.views) < min(len(free.views), floored.max_views)
     # the best view left would have shrunk the prediction by less than MIN_VIEW_GAIN
     sight = p._sight(MODULE, placed, set(p.model.tags), p._seeing(p._facing(MODULE), p.model.module_by_name[MODULE].tags))
-    info = p._information(MODULE, plan.views, dict(zip(plan.views, plan.expected)), floored)
+    info = p.plan_information(plan, floored)
     gains = [p._view_information(MODULE, v, sight, floored) for v in sight if v not in plan.views]
     best = min(floored.total_sigma(p.predicted_sigma(MODULE, info + g)) for g in gains if g.any())
     assert best > (1 - MIN_VIEW_GAIN) * plan.predicted_sigma_m
