@@ -186,11 +186,9 @@ class BorgProcedure:
         # sightings with: the calibration file's, when there is one (a survey's measurement comes
         # later, and the modules not yet measured are planned again with it: `_plan_of`)
         self.surveys: dict[str, SurveyPlan] = {}
-        self._placed_at_plan: dict[str, list[str]] = {}
         placed: list[str] = []
         for mod in modules:
             placed.append(mod.name)
-            self._placed_at_plan[mod.name] = list(placed)
             self.surveys[mod.name] = self.planner.plan(mod.name, placed, self.precision)
         # modules whose tags no candidate view sees (at their step, with what is placed in front)
         self.unobservable = {name: plan.unobservable for name, plan in self.surveys.items() if plan.unobservable}
@@ -580,7 +578,8 @@ class BorgProcedure:
         want = self._planning()
         if plan.corner_sigma_px is not None and (plan.corner_sigma_px, plan.floor_sigma_m) != (want.corner_sigma_px,
                                                                                              want.floor_sigma_m):
-            plan = self.planner.plan(name, self._placed_at_plan[name], want)
+            names = [m.name for m in self.modules]           # placed by its step, as the design has it
+            plan = self.planner.plan(name, names[:names.index(name) + 1], want)
             self.surveys[name] = plan
         return plan
 

@@ -663,7 +663,8 @@ class SurveyPlanner:
         expected = [sight[v] if v in sight else self.visible(v, present) for v in chosen]
         seen_new = set().union(*map(set, expected)) if expected else set()
         return SurveyPlan(module, chosen, expected, [t for t in new if t not in seen_new], predicted,
-                          *((precision.corner_sigma_px, precision.floor_sigma_m) if precision is not None else (None, None)))
+                          corner_sigma_px=None if precision is None else precision.corner_sigma_px,
+                          floor_sigma_m=None if precision is None else precision.floor_sigma_m)
 
     def more_views(self, module: str, placed_modules: Sequence[str], taken: Sequence[View],
                    tag_covariance: np.ndarray | None, precision: PrecisionTarget, budget: int) -> SurveyPlan:
