@@ -227,6 +227,13 @@ class SfGraphSlam:
         # structure was 0.1 ms a read at N = 8.  Read in the structure's relation order.
         self._relation_order = {key: i for i, key in enumerate(self.relations)}
         self._open: set[tuple[int, int]] = set()
+        # tags summarised out of iSAM2 (`settle`), with the estimate each had then; their keys,
+        # and the cameras' and print scales' settled with them
+        self.settled: dict[int, Pose3] = {}
+        self._settled_keys: set[int] = set()
+        # camera key -> the tag keys its sightings tie it to (`settle` settles a camera that saw
+        # only settled tags)
+        self._camera_tags: dict[int, set[int]] = {}
         if rig is not None:
             if calibration is not None and calibration.joint_covariance is not None:
                 self._joint_prior(rig, calibration)
@@ -341,6 +348,7 @@ class SfGraphSlam:
         for t in tags:
             self.generation[t] = self.generation.get(t, 0) + 1
             self.tags.discard(t)
+            self.settled.pop(t, None)
             self._tag_estimates = None
             self.observations.pop(t, None)
         for rel in self.relations.values():
@@ -348,8 +356,12 @@ class SfGraphSlam:
                 rel.decided = rel.tied = False
                 rel.reason = ""
                 rel.deploy = None
-        self._open = {key for key, rel in self.relations.items()
-                      if not rel.decided and rel.a in self.tags and rel.b in self.tags}
+        self._open = {key for key, rel in self.relations.items() if not rel.decided and self._both_live(key)}
+
+    def _both_live(self, pair: tuple[int, int]) -> bool:
+        """Both tags of a relation are in the graph and neither is settled: a relation to a settled
+        tag is never decided (its partner's variable is no longer in the solver)."""
+        return all(t in self.tags and t not in self.settled for t in pair)
 
     # ---- building the graph -------------------------------------------------------------------
     def add_view(self, structure_T_camera: Pose3 | None, detections: Sequence[Detection],
@@ -373,7 +385,8 @@ class SfGraphSlam:
         self._value(C(k), structure_T_camera)
         self._corner_params += 6
         c = self.config
-        detections = [d for d in detections if d.tag_id in self.model.tags]
+        # a settled tag's sightings are not added: its variable is no longer in the solver
+        detections = [d for d in detections if d.tag_id in self.model.tags and d.tag_id not in self.settled]
         if self.camera is not None and detections:
             # the view's corners undistorted, their obliquity and their lens basis in one pass each
             # (the same numbers as one tag at a time: undistort_px, undistorted_side_ratio, radial_basis)
@@ -401,6 +414,7 @@ class SfGraphSlam:
                     continue
                 scale = ratio ** -OBLIQUE_EXPONENT
             tk = self.key(d.tag_id)
+            self._camera_tags.setdefault(ck, set()).add(tk)
             sk = self._scale_key(d.tag_id) if scales else None
             lens = None
             if corners:
@@ -435,7 +449,7 @@ class SfGraphSlam:
                 self._corner_params += 6
                 self.tags.add(d.tag_id)
                 for key in self._relations_of.get(d.tag_id, ()):
-                    if not self.relations[key].decided and key[0] in self.tags and key[1] in self.tags:
+                    if not self.relations[key].decided and self._both_live(key):
                         self._open.add(key)
                 self._pending[self.key(d.tag_id)] = []
                 if d.tag_id in self._joint_tags:
@@ -541,7 +555,8 @@ class SfGraphSlam:
         snapshot = list(snapshot)
         if hold:
             self.held.update(snapshot)
-        partners = sorted({p for t in snapshot for key in self._relations_of.get(t, ()) for p in key} - set(snapshot))
+        partners = sorted({p for t in snapshot for key in self._relations_of.get(t, ()) for p in key}
+                          - set(snapshot) - self.settled.keys())
         self._last = [self.key(t) for t in snapshot + partners]
         self._isam_step()
         self._prefetch([t for t in snapshot if self.has_tag(t)]
@@ -561,6 +576,107 @@ class SfGraphSlam:
         if self.config.semantic and self._decide_relations():
             self._isam_step()
         self._last = []
+
+    # ---- settling what is built ---------------------------------------------------------------
+    def settle(self, tags: Iterable[int]) -> int:
+        """Summarise `tags` out of the incremental solver: tags of modules whose verdicts are
+        final, well below the part of the structure still being measured.  Their variables, their
+        print scales and every camera that saw only settled tags are marginalised out of iSAM2;
+        what they told the rest of the graph is kept only as it bears on the rig's variables and
+        the turntable tags (the frame every later view is placed in).
+
+        Exact marginalisation alone leaves a dense factor over every live tag and camera the
+        settled ones shared a view or a relation with: the large cliques that made a long run's
+        step grow (docs/benchmarks.md, "What the Bayes tree holds").  That factor is
+        Schur-complemented onto the rig and the turntable tags, which drops the live tags' ties to
+        the settled ones: information is dropped, never made up, so at the same linearisation no
+        covariance comes out smaller than the full graph's.  (A replayed run's 1-sigma differs from
+        the full graph's by -0.6 % to +3 %: the held linearisation point below, and the corner
+        noise measured from the residuals of fewer sightings, move it both ways.)  A settled tag
+        keeps the estimate it had (`tag_pose`, `tag_estimates`); a later sighting of it is not
+        added.  The variables the summary touches keep their linearisation point from then on
+        (iSAM2's rule for marginal factors).  Returns how many tags were settled.
+        (docs/sf_graphslam.md, "Settling what is built")"""
+        if self._batch_solved:
+            raise RuntimeError("settle works on the incremental solver's graph, not after a batch solve")
+        isam = self.isam
+        theta = isam.getLinearizationPoint()
+        new = [t for t in dict.fromkeys(tags) if t in self.tags and t not in self.settled and t not in self.held
+               and self.model.tags[t].module != "turntable" and self.has_tag(t)]
+        if not new:
+            return 0
+        if self._new_factors.size() or self._new_values.size() or self._pending:
+            raise RuntimeError("settle between solves: views are waiting for an update")
+        keys: set[int] = set()
+        for t in new:
+            self.settled[t] = self.tag_pose(t)
+            for g in range(self.generation.get(t, 0) + 1):
+                key = _T(t + GENERATION * g)
+                if theta.exists(key) and key not in self._settled_keys:
+                    keys.add(key)
+            if theta.exists(_S(t)):
+                keys.add(_S(t))
+        gone = self._settled_keys | keys
+        for ck, seen in self._camera_tags.items():
+            if ck not in gone and seen <= gone and theta.exists(ck):
+                keys.add(ck)
+        # the settled variables first in the elimination order, so that they are the tree's leaves
+        # (iSAM2 marginalises only leaves); nothing relinearised
+        groups, every, hold = gtsam.KeyGroupMap(), gtsam.KeyList(), gtsam.KeyList()
+        for key in theta.keys():
+            groups.insert2(key, 0 if key in keys else 1)
+            every.push_back(key)
+            hold.push_back(key)
+        isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], constrainedKeys=groups, noRelinKeys=hold,
+                    extraReelimKeys=every)
+        first = isam.getFactorsUnsafe().size()
+        leaves = gtsam.KeyList()
+        for key in sorted(keys):
+            leaves.push_back(key)
+        isam.marginalizeLeaves(leaves)
+        self._summarise_onto_frame(first)
+        self._settled_keys |= keys
+        for ck in [ck for ck in self._camera_tags if ck in keys]:
+            del self._camera_tags[ck]
+        self._open = {key for key in self._open if self._both_live(key)}
+        self._estimate = None
+        self._tag_estimates = None
+        self._cov_blocks = {}
+        return len(new)
+
+    def _summarise_onto_frame(self, first: int) -> None:
+        """Replace the marginal factors iSAM2's `marginalizeLeaves` added (indices from `first`)
+        by their Schur complement onto the rig's variables and the turntable tags (`settle`).
+        Eliminated by Cholesky, else by QR (3-6x slower on a large summary): a live camera that saw
+        one settled tag keeps only 2 of its 6 directions in the marginal (the tag's pose absorbs the
+        rest), a singular block Cholesky refuses."""
+        isam = self.isam
+        factors = isam.getFactorsUnsafe()
+        added = [i for i in range(first, factors.size()) if factors.exists(i)]
+        if not added:
+            return
+        point = isam.getLinearizationPoint()
+        linear = gtsam.GaussianFactorGraph()
+        involved: set[int] = set()
+        for i in added:
+            f = factors.at(i).linearize(point)
+            linear.push_back(f)
+            involved.update(f.keys())
+        frame = {AXIS, BASE, MOUNT, INTRINSICS, DISTORTION, LIFT}
+        frame.update(self.key(t) for t in self.tags if self.model.tags[t].module == "turntable")
+        others = gtsam.Ordering()
+        for key in sorted(involved - frame):
+            others.push_back(key)
+        if others.size() == 0:
+            return                      # the summary is on the frame already
+        summary = gtsam.NonlinearFactorGraph()
+        if involved & frame:
+            try:
+                _, rest = linear.eliminatePartialMultifrontal(others)
+            except RuntimeError:
+                _, rest = linear.eliminatePartialMultifrontal(others, gtsam.EliminateQR)
+            summary.add(gtsam.LinearContainerFactor(gtsam.HessianFactor(rest), point))
+        isam.update(summary, gtsam.Values(), added, noRelinKeys=self._linear_keys())
 
     # ---- the bound ---------------------------------------------------------------------------
     def bound_graph(self, corner_sigma_px: float, upto: int | None = None, chain_noise=None,
@@ -1057,7 +1173,8 @@ class SfGraphSlam:
         return self.isam.valueExists(key) if self._estimate is None else self._estimate.exists(key)
 
     def tag_pose(self, tag: int) -> Pose3:
-        return self._pose(self.key(tag))
+        settled = self.settled.get(tag)
+        return settled if settled is not None else self._pose(self.key(tag))
 
     def has_tag(self, tag: int) -> bool:
         return self._exists(self.key(tag))
@@ -1117,7 +1234,8 @@ class SfGraphSlam:
     def tag_estimates(self) -> dict[int, Pose3]:
         # read by tag elimination, the structure check and the log after every step: once per estimate
         if self._tag_estimates is None or self._tag_estimates[0] is not self.estimate:
-            self._tag_estimates = (self.estimate, {t: self.tag_pose(t) for t in sorted(self.tags) if self.has_tag(t)})
+            self._tag_estimates = (self.estimate, {t: self.tag_pose(t) for t in sorted(self.tags)
+                                                   if t in self.settled or self.has_tag(t)})
         return dict(self._tag_estimates[1])
 
     def not_deployed(self) -> dict[str, DeployCheck]:

@@ -150,6 +150,7 @@ class BorgProcedure:
         estimator_config.setdefault("corner_sigma_px", ver.corner_sigma_px)
         estimator_config.setdefault("tag_scale_sigma", ver.tag_scale_sigma)
         estimator_config.setdefault("near_tags_per_view", ver.near_tags_per_view)
+        estimator_config.setdefault("settle_after_layers", ver.settle_after_layers)
         corner_sigma = float(estimator_config["corner_sigma_px"])
         self.precision = PrecisionTarget(sigma_m=sigma_target_mm * 1e-3 if sigma_target_mm is not None else ver.sigma_target_m,
                                          max_views=max_views if max_views is not None else ver.max_views,
@@ -1100,6 +1101,9 @@ class BorgProcedure:
                 # resumed run counts those it replayed too
                 "sightings": {"near_tags_per_view": self.measure.near_tags_per_view, "in_graph": self.measure.sightings[0],
                               "detected": self.measure.sightings[1]},
+                # the layers summarised out of the incremental solver (Measurement.settle_built)
+                "settled": {"after_layers": self.measure.settle_after_layers, "tags": len(self.measure.slam.settled),
+                            "layers_below": self.measure.settled_below},
                 "rig_calibration_file": str(self.bench.rig.calibration.file) if self.bench.rig.calibration.file else None}
 
     def stop_devices(self) -> list[str]:

@@ -8,7 +8,7 @@ import json
 import pytest
 
 from lab.core.structures.borg import build_borg
-from lab.studies.bench_layers import (FAULT_DEPLOYED_M, FAULT_OFFSET_M, GOOD_OFFSET_M, aggregate, layer_of, to_markdown,
+from lab.studies.bench_layers import (FAULT_DEPLOYED_M, FAULT_OFFSET_M, GOOD_OFFSET_M, aggregate, to_markdown,
                                       plan_faults, scenario)
 
 
@@ -18,9 +18,9 @@ def test_every_layer_gets_each_fault_kind_and_a_good_module_just_inside(n):
     faults = plan_faults(n, seed=1)
     assert plan_faults(n, seed=1) == faults and plan_faults(n, seed=2) != faults      # seeded
     for layer in range(n):
-        kinds = {k for name, (k, _) in faults.items() if layer_of(model, name) == layer}
+        kinds = {k for name, (k, _) in faults.items() if model.layer_of(name) == layer}
         assert {"offset", "rotation", "good"} <= kinds, (layer, kinds)
-        if any(m.kind == "deployable" and layer_of(model, m.name) == layer for m in model.modules):
+        if any(m.kind == "deployable" and model.layer_of(m.name) == layer for m in model.modules):
             assert "partial_deploy" in kinds
     for name, (kind, value) in faults.items():
         if kind == "partial_deploy":
@@ -33,7 +33,7 @@ def test_every_layer_gets_each_fault_kind_and_a_good_module_just_inside(n):
 
 def test_the_layer_of_a_module_is_the_cell_row_it_closes():
     model = build_borg(3)
-    rows = {m.name: layer_of(model, m.name) for m in model.modules}
+    rows = {m.name: model.layer_of(m.name) for m in model.modules}
     assert rows["2D"] == rows["6S"] == rows["1P"] == 0            # a bottom cell, a base strut, the square on it
     assert rows["10CT"] == rows["12S"] == rows["15P"] == 1        # the centre cell, a middle strut and square
     assert rows["11D"] == rows["16S"] == 2 and rows["27P"] == 1      # 27P closes row 1 at z = 1 m

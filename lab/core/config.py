@@ -219,6 +219,11 @@ class VerificationConfig:
     # re-eliminates its far corner of the Bayes tree (docs/sf_graphslam.md, "What a view gives the
     # graph"); 0 = every sighting
     near_tags_per_view: int = 5
+    # a layer's tags are settled -- summarised out of the incremental solver onto the rig and the
+    # turntable tags -- once the run measures a module this many layers above it: the step then
+    # costs what the layers still being built cost, not the whole structure (docs/sf_graphslam.md,
+    # "Settling what is built"); 0 = never (the full graph)
+    settle_after_layers: int = 2
 
 
 def _verification(t: "_Table") -> VerificationConfig:
@@ -236,7 +241,8 @@ def _verification(t: "_Table") -> VerificationConfig:
                                        maximum=MAX_VIEWS_RANGE[1]),
                              t.number("corner_sigma_px", default=0.02, positive=True, maximum=5.0),
                              t.number("tag_scale_percent", default=0.1, minimum=0.0, maximum=5.0) * 1e-2,
-                             t.integer("near_tags_per_view", default=5, minimum=0, maximum=10000))
+                             t.integer("near_tags_per_view", default=5, minimum=0, maximum=10000),
+                             t.integer("settle_after_layers", default=2, minimum=0, maximum=1000))
     t.done()
     return cfg
 

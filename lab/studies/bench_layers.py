@@ -64,14 +64,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_executor_arguments(p)
 
 
-def layer_of(model: Any, name: str) -> int:
-    """The cell row a module belongs to: where the mean height of its nodes lies (a horizontal
-    member on top of row k, z = (k + 1) s, closes row k)."""
-    m = model.module_by_name[name]
-    z = float(np.mean(model.nodes[list(m.nodes), 2]))
-    return int(min(max(math.floor(z / model.spacing_m - 1e-6), 0), model.n - 1))
-
-
 def plan_faults(n: int, seed: int) -> dict[str, tuple[str, Any]]:
     """module -> (kind, value) for one trial: in every layer an offset fault, a rotation fault, a
     partial deployment (a deployable of the layer) and a good module 3 mm off; seeded picks."""
@@ -81,7 +73,7 @@ def plan_faults(n: int, seed: int) -> dict[str, tuple[str, Any]]:
     rng = np.random.default_rng([seed, n, 23])
     out: dict[str, tuple[str, Any]] = {}
     for layer in range(n):
-        names = [m.name for m in model.modules if layer_of(model, m.name) == layer]
+        names = [m.name for m in model.modules if model.layer_of(m.name) == layer]
         deployables = [x for x in names if model.module_by_name[x].kind == "deployable"]
         if deployables:
             out[str(rng.choice(deployables))] = ("partial_deploy", FAULT_DEPLOYED_M)
@@ -177,7 +169,7 @@ def trial(out: Path, n: int, seed: int, speedup: float) -> dict[str, Any]:
     rows = []
     for m in s["modules"]:
         kind = faults.get(m["name"], ("none", None))[0]
-        rows.append({"name": m["name"], "layer": layer_of(model, m["name"]), "fault": kind not in ("none", "good"),
+        rows.append({"name": m["name"], "layer": model.layer_of(m["name"]), "fault": kind not in ("none", "good"),
                      "verdict": m["verdict"], "views": m.get("views"),
                      "error_m": m.get("position_error_m"), "sigma_m": m.get("sigma_position_m"),
                      "replanned": "re-planned" in (m.get("reason") or ""), "nees": m.get("position_nees"),

@@ -43,6 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--near-tags-per-view", type=int, default=None, metavar="K",
                    help="besides the module's own tags, put in the graph each view's sightings of the K tags nearest "
                         "the module (0: every sighting; default: the run's own, from its summary)")
+    p.add_argument("--settle-after-layers", type=int, default=None, metavar="K",
+                   help="settle each layer once a module K layers above it is released (0: never, the full graph; "
+                        "default: the run's own, from its summary; a run from before settling: 0)")
     p.add_argument("--json", action="store_true", help="print the figures (and every round's) as JSON")
 
 
@@ -92,9 +95,11 @@ class _TimedISAM2:
         return getattr(self._isam, name)
 
 
-def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | None = None) -> dict[str, Any]:
+def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | None = None,
+           settle_after_layers: int | None = None) -> dict[str, Any]:
     """Replay the run in `run_dir` (its first `rounds` rounds; with the estimator's
-    `near_tags_per_view`, default the run's); the figures `to_markdown` prints."""
+    `near_tags_per_view` and `settle_after_layers`, default the run's); the figures `to_markdown`
+    prints."""
     from lab.core.errors import UserError
     from procedures.resume import load_run
     from procedures.borg import views_by_round
@@ -111,6 +116,8 @@ def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | N
         raise UserError(f"--rounds must be at least 1, got {rounds}")
     if near_tags_per_view is not None and near_tags_per_view < 0:
         raise UserError(f"--near-tags-per-view must be 0 (every sighting) or more, got {near_tags_per_view}")
+    if settle_after_layers is not None and settle_after_layers < 0:
+        raise UserError(f"--settle-after-layers must be 0 (never) or more, got {settle_after_layers}")
     summary_path = run_dir / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     wall0, cpu0 = time.perf_counter(), time.process_time()
@@ -120,6 +127,10 @@ def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | N
         # every sighting in the graph
         near_tags_per_view = int((summary.get("sightings") or {}).get("near_tags_per_view", 0))
     proc.measure.config["near_tags_per_view"] = near_tags_per_view
+    if settle_after_layers is None:
+        # as the run did: a run from before settling (no `settled` in its summary) kept the whole graph
+        settle_after_layers = int((summary.get("settled") or {}).get("after_layers", 0))
+    proc.measure.config["settle_after_layers"] = settle_after_layers
     clock = _Clock()
     verdicts: dict[str, Any] = {}
     survey_s = 0.0
@@ -158,6 +169,7 @@ def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | N
             "modules": len({r["module"] for r in clock.rounds}), "survey_s": survey_s, "cpu_s": cpu, "wall_s": wall,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
             "near_tags_per_view": proc.measure.near_tags_per_view, "sightings_in_graph": proc.measure.sightings[0],
+            "settle_after_layers": proc.measure.settle_after_layers, "settled_tags": len(proc.measure.slam.settled),
             "sightings": proc.measure.sightings[1],
             "per_round": clock.rounds, "against_summary": compare(verdicts, summary.get("modules", []))}
 
@@ -167,6 +179,7 @@ def compare(verdicts: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, A
     difference (m) and the largest relative 1-sigma difference, and the modules that differ."""
     by_name = {r["name"]: r for r in rows}
     differ, dev, sig, compared = [], 0.0, 0.0, 0
+    ratios: list[float] = []
     for name, v in verdicts.items():
         r = by_name.get(name)
         if r is None:
@@ -179,12 +192,23 @@ def compare(verdicts: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, A
                 dev = max(dev, abs(mine - theirs))
         if v.sigma_m is not None and r.get("sigma_position_m"):
             sig = max(sig, abs(v.sigma_m - r["sigma_position_m"]) / r["sigma_position_m"])
+            ratios.append(v.sigma_m / r["sigma_position_m"])
     return {"compared": compared, "in_summary": len(rows), "verdicts_differ": differ,
-            "max_deviation_diff": dev, "max_sigma_rel_diff": sig}
+            "max_deviation_diff": dev, "max_sigma_rel_diff": sig,
+            # the replay's 1-sigma over the run's: min / median / max (a summarised graph's is >= 1)
+            "sigma_ratio": [float(np.min(ratios)), float(np.median(ratios)), float(np.max(ratios))] if ratios else None}
 
 
 def _near(k: int) -> str:
     return "every sighting" if k <= 0 else f"the module's own tags' and each view's {k} other tags nearest it"
+
+
+def _settled(res: dict[str, Any]) -> str:
+    k = res.get("settle_after_layers", 0)
+    if not k:
+        return "Nothing settled (the whole graph in the solver)."
+    return (f"A layer settled once a module {k} layer{'s' if k > 1 else ''} above it was released: "
+            f"{res.get('settled_tags', 0):,} tags settled.")
 
 
 def _ms(xs: list[float]) -> str:
@@ -201,7 +225,7 @@ def to_markdown(res: dict[str, Any], command: str) -> list[str]:
              f"{res['structure']}, replayed in {res['wall_s']:.0f} s ({res['cpu_s']:.0f} s CPU, the procedure's "
              f"plans and the survey's solve ({res['survey_s']:.1f} s) included); peak memory "
              f"{res['peak_rss_mb']:.0f} MB.  Sightings in the graph: {res['sightings_in_graph']:,} of "
-             f"{res['sightings']:,} ({_near(res['near_tags_per_view'])}).", "",
+             f"{res['sightings']:,} ({_near(res['near_tags_per_view'])}).  {_settled(res)}", "",
              "| part | CPU total (s) | per round median / p90 / max (ms) | of it iSAM2 updates (s) | marginals (s) | "
              "estimate (s) | variables re-eliminated |", "|---|---|---|---|---|---|---|"]
     for part in PARTS:
@@ -233,7 +257,9 @@ def to_markdown(res: dict[str, Any], command: str) -> list[str]:
     same = c["compared"] - len(c["verdicts_differ"])
     lines += ["", f"Against the run's summary: {same} of {c['compared']} verdicts the same "
                   f"({c['in_summary']} modules in it); deviations within {c['max_deviation_diff']:.1e}, "
-                  f"1σ within {c['max_sigma_rel_diff']:.1e} relative."]
+                  f"1σ within {c['max_sigma_rel_diff']:.1e} relative"
+                  + (f" (replay / run: min {c['sigma_ratio'][0]:.4f}, median {c['sigma_ratio'][1]:.4f}, "
+                     f"max {c['sigma_ratio'][2]:.4f})." if c.get("sigma_ratio") else ".")]
     for d in c["verdicts_differ"]:
         lines.append(f"- {d['module']}: the run said {d['run']}, the replay {d['replay']}")
     return lines
@@ -243,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
     import shlex
     import sys
 
-    res = replay(Path(args.run_dir), args.rounds, args.near_tags_per_view)
+    res = replay(Path(args.run_dir), args.rounds, args.near_tags_per_view, args.settle_after_layers)
     if args.json:
         print(json.dumps(res, default=float))
     else:

@@ -92,6 +92,13 @@ class BorgModel:
     def module_tags(self, name: str) -> tuple[int, ...]:
         return self.module_by_name[name].tags
 
+    def layer_of(self, name: str) -> int:
+        """The cell row a module belongs to: where the mean height of its nodes lies (a horizontal
+        member on top of row k, z = (k + 1) s, closes row k)."""
+        m = self.module_by_name[name]
+        z = float(np.mean(self.nodes[list(m.nodes), 2]))
+        return int(min(max(math.floor(z / self.spacing_m - 1e-6), 0), self.n - 1))
+
     def design_between(self, a: int, b: int) -> Pose3:
         """Designed relative pose tag_a_T_tag_b."""
         return self.tags[a].structure_T_tag.between(self.tags[b].structure_T_tag)
