@@ -973,6 +973,10 @@ class BorgProcedure:
         full = self._rounds_since_full is None or self._rounds_since_full + 1 >= every
         self._rounds_since_full = 0 if full else self._rounds_since_full + 1
         estimates = self.measure.tag_estimates(None if full else module_tags)
+        # a settled tag's estimate no longer moves and has no marginal in the solver: its last
+        # logged pose and covariance stand (docs/sf_graphslam.md, "Settling what is built")
+        settled = self.measure.slam.settled
+        estimates = {t: e for t, e in estimates.items() if t not in settled}
         if estimates:
             poses = {tid: p for tid, (p, _) in estimates.items()}
             covs = {tid: c for tid, (_, c) in estimates.items() if c is not None}
