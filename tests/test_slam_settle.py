@@ -13,12 +13,11 @@ import gtsam
 import numpy as np
 import pytest
 
-from estimation.fiducials import Detection, tag_object_points
-from estimation.rig_model import AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MOUNT, ViewMotion, cal3_s2
+from estimation.rig_model import AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MOUNT
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
-from lab.core.geometry import Pose3, Rot3
+from lab.core.geometry import Pose3
 from procedures.borg_measure import Measurement
-from test_slam_step_exact import GEOM, K, MODEL, TT, _calibration
+from test_slam_step_exact import GEOM, K, MODEL, TT, _calibration, _view
 
 # three steps: the first module's tags, then those with the next ones, then the next ones alone
 STEPS = (((-0.6, -0.3), (0, 9, 36, 37)), ((-0.2, 0.1), (0, 9, 1, 2, 37)), ((0.2, 0.5), (1, 2, 13, 38, 47, 0)))
@@ -26,26 +25,7 @@ STEPS = (((-0.6, -0.3), (0, 9, 36, 37)), ((-0.2, 0.1), (0, 9, 1, 2, 37)), ((0.2,
 
 def _views(seed: int = 0):
     rng = np.random.default_rng(seed)
-    out = []
-    for angles, tags in STEPS:
-        views = []
-        for a in angles:
-            motion = ViewMotion(a, (0.0, 0.0, 0.0, 0.0, 0.1047, 0.0))
-            cam = GEOM.predict_nominal(motion)
-            pinhole = gtsam.PinholeCameraCal3_S2(cam, cal3_s2(K))
-            dets = []
-            for t in tags:
-                spec = MODEL.tags[t]
-                ct = cam.between(spec.structure_T_tag)
-                if float(ct.rotation().matrix()[:, 2] @ ct.translation()) >= 0:
-                    continue
-                uv = np.array([pinhole.project(spec.structure_T_tag.transformFrom(p))
-                               for p in tag_object_points(spec.size_m)]) + rng.normal(0.0, 0.05, (4, 2))
-                ippe = ct.compose(Pose3(Rot3.Expmap(rng.normal(0.0, 0.005, 3)), rng.normal(0.0, 0.001, 3)))
-                dets.append(Detection(t, uv, ippe, np.eye(6) * 1e-4, 0.05, 10.0, False, spec.size_m))
-            views.append((cam, dets, motion))
-        out.append(views)
-    return out
+    return [[_view(a, tags, rng) for a in angles] for angles, tags in STEPS]
 
 
 def _slam() -> SfGraphSlam:

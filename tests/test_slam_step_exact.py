@@ -184,26 +184,27 @@ def _steps(seed: int = 0):
     """Two steps of two views each, the rig where its nominal geometry puts it: each tag's
     corners with 0.05 px noise, its IPPE pose a few tenths of a degree off."""
     rng = np.random.default_rng(seed)
-    steps = []
-    for angles in ((-0.6, -0.3), (0.0, 0.3)):
-        views = []
-        for a in angles:
-            motion = ViewMotion(a, (0.0, 0.0, 0.0, 0.0, 0.1047, 0.0))
-            cam = GEOM.predict_nominal(motion)
-            pinhole = gtsam.PinholeCameraCal3_S2(cam, cal3_s2(K))
-            dets = []
-            for t in (0, 1, 2, 9, 13, 36, 37, 38, 47):
-                spec = MODEL.tags[t]
-                ct = cam.between(spec.structure_T_tag)
-                if float(ct.rotation().matrix()[:, 2] @ ct.translation()) >= 0:
-                    continue
-                uv = np.array([pinhole.project(spec.structure_T_tag.transformFrom(p))
-                               for p in tag_object_points(spec.size_m)]) + rng.normal(0.0, 0.05, (4, 2))
-                ippe = ct.compose(Pose3(Rot3.Expmap(rng.normal(0.0, 0.005, 3)), rng.normal(0.0, 0.001, 3)))
-                dets.append(Detection(t, uv, ippe, np.eye(6) * 1e-4, 0.05, 10.0, False, spec.size_m))
-            views.append((cam, dets, motion))
-        steps.append(views)
-    return steps
+    return [[_view(a, (0, 1, 2, 9, 13, 36, 37, 38, 47), rng) for a in angles] for angles in ((-0.6, -0.3), (0.0, 0.3))]
+
+
+def _view(turntable_rad: float, tags, rng):
+    """One view at this turntable angle (the rig at its nominal geometry): the camera, the
+    detections of those of `tags` that face it (corners with 0.05 px noise, IPPE a few tenths of a
+    degree off), the motion."""
+    motion = ViewMotion(turntable_rad, (0.0, 0.0, 0.0, 0.0, 0.1047, 0.0))
+    cam = GEOM.predict_nominal(motion)
+    pinhole = gtsam.PinholeCameraCal3_S2(cam, cal3_s2(K))
+    dets = []
+    for t in tags:
+        spec = MODEL.tags[t]
+        ct = cam.between(spec.structure_T_tag)
+        if float(ct.rotation().matrix()[:, 2] @ ct.translation()) >= 0:
+            continue
+        uv = np.array([pinhole.project(spec.structure_T_tag.transformFrom(p))
+                       for p in tag_object_points(spec.size_m)]) + rng.normal(0.0, 0.05, (4, 2))
+        ippe = ct.compose(Pose3(Rot3.Expmap(rng.normal(0.0, 0.005, 3)), rng.normal(0.0, 0.001, 3)))
+        dets.append(Detection(t, uv, ippe, np.eye(6) * 1e-4, 0.05, 10.0, False, spec.size_m))
+    return cam, dets, motion
 
 
 def _run(hold_linear: bool = True) -> SfGraphSlam:
