@@ -258,7 +258,7 @@ def test_a_replay_of_a_finished_run_gives_its_verdicts_and_times_each_part(lab, 
     s = _summary(out)
     c = data["against_summary"]
     assert c["compared"] == c["in_summary"] == EARLY.modules and c["verdicts_differ"] == []
-    assert c["max_deviation_diff"] < 1e-12 and c["max_sigma_rel_diff"] < 1e-9
+    assert c["max_deviation_diff"] < 1e-12 and c["max_rotation_diff"] < 1e-12 and c["max_sigma_rel_diff"] < 1e-9
     assert data["rounds"] == data["rounds_in_run"] >= EARLY.modules
     assert [row["module"] for row in data["per_round"]][0] == s["modules"][0]["name"]
     assert all(row["step"] > 0 and row.get("step.update", 0) <= row["step"] for row in data["per_round"])

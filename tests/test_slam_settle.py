@@ -170,4 +170,4 @@ def test_a_run_that_settled_a_layer_replays_to_the_bit(lab, run_dir):
     c = res["against_summary"]
     assert res["settled_tags"] == s["settled"]["tags"]
     assert c["compared"] == 11 and not c["verdicts_differ"]
-    assert c["max_deviation_diff"] == 0.0 and c["max_sigma_rel_diff"] == 0.0
+    assert c["max_deviation_diff"] == 0.0 and c["max_rotation_diff"] == 0.0 and c["max_sigma_rel_diff"] == 0.0

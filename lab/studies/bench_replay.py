@@ -176,9 +176,10 @@ def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | N
 
 def compare(verdicts: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, Any]:
     """The replayed verdicts against the run's summary rows: how many equal, the largest deviation
-    difference (m) and the largest relative 1-sigma difference, and the modules that differ."""
+    difference (position, m; rotation, rad) and the largest relative 1-sigma difference, and the
+    modules that differ."""
     by_name = {r["name"]: r for r in rows}
-    differ, dev, sig, compared = [], 0.0, 0.0, 0
+    differ, dev, dev_rad, sig, compared = [], 0.0, 0.0, 0.0, 0
     ratios: list[float] = []
     for name, v in verdicts.items():
         r = by_name.get(name)
@@ -187,15 +188,16 @@ def compare(verdicts: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, A
         compared += 1
         if v.verdict != r["verdict"]:
             differ.append({"module": name, "run": r["verdict"], "replay": v.verdict})
-        for mine, theirs in ((v.deviation_m, r.get("deviation_m")), (v.deviation_rad, r.get("deviation_rad"))):
-            if mine is not None and theirs is not None:
-                dev = max(dev, abs(mine - theirs))
+        if v.deviation_m is not None and r.get("deviation_m") is not None:
+            dev = max(dev, abs(v.deviation_m - r["deviation_m"]))
+        if v.deviation_rad is not None and r.get("deviation_rad") is not None:
+            dev_rad = max(dev_rad, abs(v.deviation_rad - r["deviation_rad"]))
         if v.sigma_m is not None and r.get("sigma_position_m"):
             sig = max(sig, abs(v.sigma_m - r["sigma_position_m"]) / r["sigma_position_m"])
             ratios.append(v.sigma_m / r["sigma_position_m"])
     return {"compared": compared, "in_summary": len(rows), "verdicts_differ": differ,
-            "max_deviation_diff": dev, "max_sigma_rel_diff": sig,
-            # the replay's 1-sigma over the run's: min / median / max (a summarised graph's is >= 1)
+            "max_deviation_diff": dev, "max_rotation_diff": dev_rad, "max_sigma_rel_diff": sig,
+            # the replay's 1-sigma over the run's: min / median / max
             "sigma_ratio": [float(np.min(ratios)), float(np.median(ratios)), float(np.max(ratios))] if ratios else None}
 
 
@@ -256,7 +258,8 @@ def to_markdown(res: dict[str, Any], command: str) -> list[str]:
     c = res["against_summary"]
     same = c["compared"] - len(c["verdicts_differ"])
     lines += ["", f"Against the run's summary: {same} of {c['compared']} verdicts the same "
-                  f"({c['in_summary']} modules in it); deviations within {c['max_deviation_diff']:.1e}, "
+                  f"({c['in_summary']} modules in it); deviations within {c['max_deviation_diff']:.1e} m and "
+                  f"{c.get('max_rotation_diff', 0.0):.1e} rad, "
                   f"1σ within {c['max_sigma_rel_diff']:.1e} relative"
                   + (f" (replay / run: min {c['sigma_ratio'][0]:.4f}, median {c['sigma_ratio'][1]:.4f}, "
                      f"max {c['sigma_ratio'][2]:.4f})." if c.get("sigma_ratio") else ".")]
