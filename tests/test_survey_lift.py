@@ -78,7 +78,8 @@ def test_a_view_label_names_the_lift_only_when_it_is_used():
 def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> list[int]:
     """The documented rules, one tag at a time: near enough, facing the camera within the view
     angle, all corners in front and inside the image by the margin, sides long enough to decode;
-    nearest first, hidden when nearer tags' boxes cover more than the overlap fraction of it."""
+    nearest first, hidden when nearer tags' boxes cover more than the overlap fraction of it; seen
+    only when its image is no flatter than `min_side_ratio` (a flatter one still hides others)."""
     c = p.config
     s_T_c = p.structure_T_camera(view)
     c_T_s = s_T_c.inverse().matrix()
@@ -112,7 +113,10 @@ def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> lis
         crossed = any(cv2.intersectConvexConvex(grown_quad(q, 1.0).astype(np.float32), band)[0]
                       > HIDDEN_MIN_OVERLAP_CELLS2 * cell for _, _, q in kept)
         kept.append((lo, hi, uv))
-        if covered <= c.occlusion_overlap * np.prod(hi - lo) and not crossed:
+        # a tag seen flatter than the graph takes still hides the others, but is not counted seen
+        sides = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1)
+        flat = sides.min() < c.min_side_ratio * sides.max()
+        if covered <= c.occlusion_overlap * np.prod(hi - lo) and not crossed and not flat:
             seen.append(tid)
     return seen
 

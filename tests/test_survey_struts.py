@@ -111,7 +111,9 @@ def test_a_tag_few_candidate_views_see_gets_the_lifts_other_views_for_its_accura
     """N = 6's close-out strut 135S: its tag is seen from 2 of the candidate views, which leave its
     predicted 1-sigma over the target; the plan and the further views look over the rest of the
     lift's travel and the wider looks (they stopped at those 2 views, and 135S came out `uncertain`
-    at a 1-sigma of 1-2 mm in three seeds of five)."""
+    at a 1-sigma of 1-2 mm in three seeds of five).  Since the plan counts only sightings the graph
+    measures (`SurveyConfig.min_side_ratio`), its 2 views reach the target at the corner noise of a
+    clean camera; a real calibration's 0.1 px does not."""
     from procedures.survey import PrecisionTarget
 
     p = _planner(6)
@@ -120,7 +122,7 @@ def test_a_tag_few_candidate_views_see_gets_the_lifts_other_views_for_its_accura
     placed = names[:names.index(module) + 1]
     tag = p.model.module_by_name[module].tags[0]
     assert len(p._seeing(p._facing(module), [tag])) == 2          # else this test shows nothing
-    target = PrecisionTarget()
+    target = PrecisionTarget(corner_sigma_px=0.1)
     plan = p.plan(module, placed, target)
     assert len(plan.views) > 2 and any(v not in p.candidates for v in plan.views)
     two = p._information(module, [v for v in plan.views if v in p.candidates], p._sight(
