@@ -295,6 +295,23 @@ class BorgProcedure:
                 f"(docs/hardware.md, \"The lift\"), or run with --allow-unobservable to assemble them anyway "
                 f"(reported unverified)", self.unobservable_lines())
 
+    def dry_run_notes(self, steps: list[StepSpec]) -> list[str]:
+        """What the plans made before anything moves amount to: their views, and the tags they
+        measure from one turntable angle only (depth then rests on the tag's size, not on
+        triangulation: a plan's weakness an operator can see before the run)."""
+        sep = self.planner.config.min_angle_separation_rad
+        planned = [self.surveys[s.params["module"]] for s in steps if "module" in s.params]
+        if not planned:
+            return []
+        views = sum(len(p.views) for p in planned)
+        one = sorted(t for p in planned for t in self.model.module_by_name[p.module].tags
+                     if 0 < _angles_apart([v.turntable_rad for v, seen in zip(p.views, p.expected) if t in seen], sep) < 2)
+        tags = sum(len(self.model.module_by_name[p.module].tags) for p in planned)
+        survey = f", the rig survey {len(self.rig_survey_plan.views)}" if self.rig_survey else ""
+        return [f"{views} views planned for {len(planned)} modules ({views / len(planned):.2f} a module){survey}",
+                f"{len(one)} of {tags} tags planned from one turntable angle only"
+                + (f" (tags {', '.join(map(str, one[:12]))}{', ...' if len(one) > 12 else ''})" if one else "")]
+
     def dry_run_warnings(self, steps: list[StepSpec]) -> list[str]:
         if not self.allow_unobservable:
             return []

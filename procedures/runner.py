@@ -215,6 +215,8 @@ def dry_run(procedure: Procedure) -> int:
     # what a run would go on with but should say (a procedure may have none)
     warnings = getattr(procedure, "dry_run_warnings", lambda steps: [])(steps)
     print(f"dry run of {procedure.name}: {len(steps)} steps planned")
+    for note in getattr(procedure, "dry_run_notes", lambda steps: [])(steps):
+        print(f"  {note}")
     for w in warnings:
         print(f"  WARNING: {w}")
     for p in problems:

@@ -6,6 +6,7 @@ lift's 5 m mast carries the camera to the top layers, and a dry run finds every 
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +101,12 @@ def test_a_dry_run_finds_every_module_of_an_8x8x8_observable(lab):
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "dry run of borg: 411 steps planned" in r.stdout       # the rig survey + 410 modules
     assert "all planned moves are within limits" in r.stdout
+    # what the plans amount to: their views, and the few tags measured from one angle only (the
+    # top layer's strut brackets; 6 at stop 47)
+    views = re.search(r"(\d+) views planned for 410 modules \((\d+\.\d+) a module\), the rig survey 288", r.stdout)
+    assert views and 410 * 3 <= int(views[1]) <= 410 * 12
+    one = re.search(r"(\d+) of 538 tags planned from one turntable angle only", r.stdout)
+    assert one and int(one[1]) <= 12
     assert "REFUSED" not in r.stdout and "unobservable" not in r.stdout + r.stderr
 
 
