@@ -96,7 +96,7 @@ class SurveyConfig:
     # re-planned the step once its views were taken (at N = 6, 12 % of the modules' own sightings
     # were that flat, and 116 of 117 re-plans were a second turntable angle the graph had dropped).
     # The margin is over 3x the scatter of the measured ratio about the predicted one (0.0044 at
-    # N = 6, from the tags' own mounting errors the plan cannot know).
+    # N = 6: the errors of the tags and the rig that the plan cannot know).
     min_side_ratio: float = MIN_SIDE_RATIO + 0.015
     max_distance_m: float = 4.5
     occlusion_overlap: float = 0.25       # fraction of a tag's box covered by a nearer tag's box
