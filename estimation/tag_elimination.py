@@ -15,7 +15,6 @@ test (`explained_axes`).
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -48,23 +47,6 @@ def _drop_along(diff: np.ndarray, axes: np.ndarray) -> None:
     diff -= (diff * axes).sum(axis=-1)[..., None] * axes
 
 
-# Each model's design, tag by tag, as arrays made once: a run searches its live tags after every
-# step, and reading ~200 designed poses through their wrappers each time cost ~0.2 ms of the step.
-# Keyed by the model's id, held with a weak reference to it (a model is not hashable: numpy fields)
-_DESIGN: dict[int, tuple[weakref.ref, dict[int, np.ndarray], dict[int, np.ndarray]]] = {}
-
-
-def _design_of(model: BorgModel) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
-    """(tag -> designed position, tag -> designed tag_T_structure as 4x4) of `model`."""
-    hit = _DESIGN.get(id(model))
-    if hit is None or hit[0]() is not model:
-        hit = (weakref.ref(model), {t: tag.structure_T_tag.translation() for t, tag in model.tags.items()},
-               {t: tag.structure_T_tag.inverse().matrix() for t, tag in model.tags.items()})
-        _DESIGN[id(model)] = hit
-        weakref.finalize(model, _DESIGN.pop, id(model), None)
-    return hit[1], hit[2]
-
-
 def _most_consistent_base(ids: list[int], poses: np.ndarray, model: BorgModel, design: np.ndarray,
                           est: np.ndarray, axes: np.ndarray | None) -> int:
     """The index of the base tag whose prediction of every tag (estimate · design⁻¹ · design) has
@@ -72,7 +54,7 @@ def _most_consistent_base(ids: list[int], poses: np.ndarray, model: BorgModel, d
     pass (`_median_distances`).  A 10x10x10's 926 tags: 12 ms of CPU a call, against 29-31 ms for
     the blocked numpy form it replaced and 50 ms for one numpy pass over every candidate at once
     (both cores busy; the same base tag)."""
-    inverse = _design_of(model)[1]
+    inverse = model.tag_T_structure
     fits = poses @ np.array([inverse[b] for b in ids])
     use_axes = axes is not None
     return int(np.argmin(_median_distances(np.ascontiguousarray(fits), design, est,
@@ -119,7 +101,7 @@ def eliminate_tags(estimates: Mapping[int, Pose3], model: BorgModel, *, cutoff_m
     ids = sorted(t for t in estimates if t in model.tags)
     if len(ids) < min_tags:
         return EliminationResult([], {}, ids[0] if ids else -1, Pose3())
-    position = _design_of(model)[0]
+    position = model.tag_positions
     design = np.array([position[t] for t in ids])
     poses = np.array([estimates[t].matrix() for t in ids])               # (n, 4, 4)
     est = np.ascontiguousarray(poses[:, :3, 3])

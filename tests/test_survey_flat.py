@@ -5,9 +5,7 @@ and 116 of 117 modules re-planned for that angle once their views were taken (is
 
 from __future__ import annotations
 
-import numpy as np
-
-from estimation.rig_model import MIN_SIDE_RATIO
+from estimation.rig_model import MIN_SIDE_RATIO, undistorted_side_ratio
 from lab.core.structures.borg import build_borg
 from procedures.survey import SurveyConfig, SurveyPlanner
 from test_survey_struts import CAMERA, KIN, RIG, _planner
@@ -17,11 +15,9 @@ FLAT_AT_6 = ("45S", "46S", "84S", "131S")
 
 
 def _ratio(p: SurveyPlanner, view, tag: int) -> float:
-    """The tag's predicted image, shortest side over longest (the graph's `side_ratio`)."""
+    """The tag's predicted image, shortest side over longest, as the graph reads a sighting."""
     g = p._geometry(view)
-    q = g.quad[g.row[p._index[tag]]]
-    sides = np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1)
-    return float(sides.min() / sides.max())
+    return undistorted_side_ratio(g.quad[g.row[p._index[tag]]])
 
 
 def _counted(p: SurveyPlanner, module: str) -> list[tuple[float, float]]:
