@@ -24,7 +24,8 @@ Factors, a few lines per type below:
 GraphSLAM is the same graph with `semantic=False`.
 
 Solvers: iSAM2 (incremental, between assembly steps; relinearise threshold 0.001 in the tangent
-units, every update) and batch Levenberg–Marquardt for studies.  Marginal covariances from iSAM2.
+units, 0.05 px for the intrinsics, every update) and batch Levenberg–Marquardt for studies.
+Marginal covariances from iSAM2.
 """
 
 from __future__ import annotations
@@ -59,12 +60,32 @@ GENERATION = 10_000             # a re-placed module's tags are new map elements
 # shortcuts: 64 a chunk 15.0 s, 128 8.6 s, 256 3.9-4.2 s, 512 7.8 s, all at once 8.6 s; at N = 5
 # (147 tags) 0.2 s whichever
 JOINT_CHUNK = 256
+# Relinearisation thresholds by the kind of variable (its key's character: c camera, t tag, s print
+# scale, a b m l the axis, base, mount and lift, d the lens's distortion correction, k the
+# intrinsics), as iSAM2 takes them.  Every kind at `SlamConfig.relinearize_threshold` but the
+# intrinsics, which are in pixels and are in every corner factor of a run: at 0.001 px the focal
+# length passed the threshold in most steps and every live corner factor was called back again
+# (an N = 8 replay's step 90th percentile 26 -> 94 ms at 0.002 px); 0.05 px changes a corner's
+# Jacobians by 5e-5 of themselves.  A kind not listed here would be undefined behaviour in iSAM2's
+# map lookup: `_value` refuses it.
+INTRINSICS_RELINEARIZE_PX = 0.05
+_KEY_DIMS = {"c": 6, "t": 6, "s": 1, "a": 6, "b": 6, "m": 6, "l": 6, "d": 2, "k": 5}
+_K_CHR = chr(gtsam.Symbol(INTRINSICS).chr())
 # the deployment check's fixed tolerances, widened by the pair's noise where it is measured worse
 DEPLOY_LATERAL_MIN_M = 0.010
 DEPLOY_ROTATION_MIN_RAD = math.radians(2.0)
 
 
 @functools.lru_cache(maxsize=None)
+def _thresholds(threshold: float) -> gtsam.ISAM2ThresholdMap:
+    """iSAM2's relinearisation thresholds: `threshold` for every kind of variable, the intrinsics
+    their own (INTRINSICS_RELINEARIZE_PX)."""
+    out = gtsam.ISAM2ThresholdMap()
+    for kind, dim in _KEY_DIMS.items():
+        out.insert((kind, np.full(dim, INTRINSICS_RELINEARIZE_PX if kind == _K_CHR else threshold)))
+    return out
+
+
 def _tag_points(size_m: float) -> np.ndarray:
     """tag_object_points, one array per tag size (read only: the corner factors keep it)."""
     points = tag_object_points(size_m)
@@ -156,6 +177,16 @@ class SfGraphSlam:
             corner_kernel.warm()
         self.rig = rig
         self.calibration = calibration
+        # A run reads its corners through the intrinsics its rig survey estimated, and the survey
+        # knows them only to its covariance (at N = 6: 0.06 % in focal length, 0.4 px in the
+        # principal point, which move a tag at the structure's far side by 0.4-0.8 mm).  With the
+        # survey's joint prior the intrinsics are a variable of every corner factor: their
+        # uncertainty reaches every tag's covariance, and the run's own views refine them.  Held at
+        # the survey's estimate, the graph took it as exact and the mount absorbed its error: an
+        # N = 6 run's top layer 0.7 mm off at a NEES of 3.6, its mount at a NEES of 3,000
+        # (docs/sf_graphslam.md, "The intrinsics").
+        self.free_intrinsics = (rig is not None and calibration is not None and calibration.joint_covariance is not None
+                                and self.config.observation == "corners" and camera is not None)
         c = self.config
         self.camera_noise = gtsam.noiseModel.Diagonal.Sigmas(
             np.array([c.camera_sigma_rad] * 3 + [c.camera_sigma_m] * 3))
@@ -164,7 +195,7 @@ class SfGraphSlam:
         self.fixed_observation_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(
             [c.observation_sigma_rad or 0.0] * 3 + [c.observation_sigma_m or 0.0] * 3))
         params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(c.relinearize_threshold)
+        params.setRelinearizeThreshold(_thresholds(c.relinearize_threshold))
         params.relinearizeSkip = 1
         self.isam = gtsam.ISAM2(params)
         # iSAM2 hands each Python factor its linearisation point as a `const Values &`, which
@@ -280,11 +311,9 @@ class SfGraphSlam:
         for key, value in zip(keys, values):
             self._value(key, value)
         self._joint_tags = set(tags)
-        # The corner factors keep the survey's intrinsics fixed: as a variable of every corner
-        # factor, each update moved the focal length past the relinearisation threshold and
-        # re-evaluated every corner factor in Python (a SLAM step 8 -> 52 ms), for a 1-sigma that
-        # did not change at 0.01 mm (the survey's focal length is good to ~0.02 %).  They stay in the
-        # joint prior, unconnected: marginalising them out is exact.
+        # The intrinsics are a variable of every corner factor (`free_intrinsics`), relinearised on
+        # their own threshold (INTRINSICS_RELINEARIZE_PX): at the scalar one the focal length moved
+        # past it in most updates and every corner factor was called back again.
 
     def _turntable_tag_prior(self, tag: int) -> None:
         """The turntable tags fix the structure frame: at their design poses, known to the rig's
@@ -427,7 +456,8 @@ class SfGraphSlam:
             if corners:
                 local = _tag_points(d.size_m)
                 self._add(corner_factor(ck, tk, u, local, c.corner_sigma_px * scale, robust_k=robust_k,
-                                        fixed=self._cal, scale_key=sk, distortion=lens), spec)
+                                        fixed=None if self.free_intrinsics else self._cal, scale_key=sk,
+                                        distortion=lens), spec)
                 # what the factor is built from, kept: the residual pass reads it, and the batch
                 # solve builds one factor a view from it (`_batch_graph`)
                 self._corner_factors.append((self.graph.size() - 1, scale, ck, tk, sk, u, local,
@@ -526,7 +556,8 @@ class SfGraphSlam:
         if all(s[4] is not None for s in sightings):
             d = self._vector(DISTORTION) if self._exists(DISTORTION) else self._new_values.atVector(DISTORTION)
             lens = (np.array([s[4] for s in sightings]), d)
-        cal = np.array([self._cal.fx(), self._cal.fy(), self._cal.skew(), self._cal.px(), self._cal.py()])
+        k = self._intrinsics()
+        cal = np.array([k.fx(), k.fy(), k.skew(), k.px(), k.py()])
         pose, scale = refine_tag_pose(start, [s[0] for s in sightings], np.array([s[2] for s in sightings]),
                                       _tag_points(sightings[0][1].size_m), cal, np.array([s[3] for s in sightings]),
                                       scale, lens, scale_sigma, tolerance=self.config.relinearize_threshold)
@@ -535,12 +566,26 @@ class SfGraphSlam:
             self.initial.update(scale_key, np.array([scale]))
         return pose
 
+    def _intrinsics(self) -> gtsam.Cal3_S2:
+        """The intrinsics the corners are read through now: the graph's estimate where they are a
+        variable (`free_intrinsics`), else the camera's."""
+        assert self._cal is not None
+        if not self.free_intrinsics:
+            return self._cal
+        if self._estimate is not None and self._estimate.exists(INTRINSICS):
+            return self._estimate.atCal3_S2(INTRINSICS)
+        if self.isam.valueExists(INTRINSICS):
+            return self.isam.calculateEstimateCal3_S2(INTRINSICS)
+        return self.initial.atCal3_S2(INTRINSICS)
+
     def _add(self, factor, spec: tuple) -> None:
         self._new_factors.add(factor)
         self.graph.add(factor)
         self.specs.append(spec)
 
     def _value(self, key: int, value: Pose3 | gtsam.Cal3_S2 | np.ndarray) -> None:
+        if chr(gtsam.Symbol(key).chr()) not in _KEY_DIMS:
+            raise ValueError(f"variable {gtsam.Symbol(key)} is of a kind with no relinearisation threshold (_KEY_DIMS)")
         self._new_values.insert(key, value)
         self.initial.insert(key, value)
 
@@ -724,7 +769,8 @@ class SfGraphSlam:
             # the measurement is irrelevant to the covariance; only the Jacobians at the truth count
             # (the lens's basis, read at the corners as measured, moves by < 1 px at the truth)
             return corner_factor(ck, tk, np.zeros((4, 2)), tag_object_points(size), corner_sigma_px * scale,
-                                 robust_k=None, fixed=self._cal, scale_key=sk, distortion=lens)
+                                 robust_k=None, fixed=None if self.free_intrinsics else self._cal, scale_key=sk,
+                                 distortion=lens)
         return None
 
     def _marginal(self, tag: int) -> np.ndarray | None:
@@ -734,16 +780,19 @@ class SfGraphSlam:
             return None
 
     def _linear_keys(self) -> gtsam.KeyList:
-        """Variables every factor of the run graph is linear in: the intrinsics (only in the survey's
-        joint prior, a linear factor) and the lens's distortion correction (the corner factors
-        subtract basis · d, a constant Jacobian).  Relinearising them changes no Jacobian, only
-        the right-hand side that iSAM2's delta already carries, so holding their linearisation
-        point gives the same estimate and marginals to round-off -- and spares the update the
-        re-elimination, from their cliques to the root, that each of their relinearisations
-        cost (the focal length moves past the threshold in most steps: a 0.001 px change)."""
+        """Variables every factor of the run graph is linear in: the lens's distortion correction
+        (the corner factors subtract basis · d, a constant Jacobian), and the intrinsics where they
+        are only in the survey's joint prior (a linear factor; not `free_intrinsics`).
+        Relinearising them changes no Jacobian, only the right-hand side that iSAM2's delta
+        already carries, so holding their linearisation point gives the same estimate and
+        marginals to round-off -- and spares the update the re-elimination, from their cliques to
+        the root, that each of their relinearisations cost.  Intrinsics in the corner factors are
+        not linear there: held, the factors' residuals at the held point drifted from the
+        estimate, their robust kernel read that as outliers, and the module's 1-sigma came out
+        3-10x too wide."""
         keys = gtsam.KeyList()
         if self.rig is not None:
-            for key in (INTRINSICS, DISTORTION):
+            for key in ((DISTORTION,) if self.free_intrinsics else (INTRINSICS, DISTORTION)):
                 if self.initial.exists(key):
                     keys.push_back(key)
         return keys
@@ -757,11 +806,16 @@ class SfGraphSlam:
         variable of the run (0.3-0.4 ms a step, growing with the run)."""
         delta = self.isam.getDelta()
         threshold = self.config.relinearize_threshold
+        held = set(held)
+        # the intrinsics are judged on their own threshold (INTRINSICS_RELINEARIZE_PX)
+        own = INTRINSICS not in held and delta.exists(INTRINSICS)
+        if own and bool(np.any(np.abs(delta.at(INTRINSICS)) >= INTRINSICS_RELINEARIZE_PX)):
+            return True
         over = int(np.count_nonzero(np.abs(delta.vector()) >= threshold))
         if over == 0:
             return False
         held_over = sum(int(np.count_nonzero(np.abs(delta.at(key)) >= threshold))
-                        for key in set(held) if delta.exists(key))
+                        for key in held | ({INTRINSICS} if own else set()) if delta.exists(key))
         return over > held_over
 
     def _last_groups(self, observed: bool) -> gtsam.KeyGroupMap | None:
@@ -841,7 +895,7 @@ class SfGraphSlam:
             behind = z <= 0
             iz = 1.0 / np.where(behind, 1.0, z)
             x, y = q[..., 0] * iz, q[..., 1] * iz
-            cal = self._cal
+            cal = self._intrinsics()
             meas = np.array([f[5] for f in todo])                                                   # (n, 4, 2)
             e = np.empty((len(todo), 4, 2))
             e[..., 0] = cal.fx() * x + cal.skew() * y + cal.px() - meas[..., 0]
@@ -899,8 +953,8 @@ class SfGraphSlam:
 
     def _view_factors(self) -> bool:
         """Whether the batch takes the corner factors a view at a time (`_batch_graph`): the corner
-        model with the intrinsics fixed."""
-        return self._cal is not None and self.config.observation == "corners"
+        model with the intrinsics fixed (the view factors hold them constant)."""
+        return self._cal is not None and self.config.observation == "corners" and not self.free_intrinsics
 
     def _batch_graph(self) -> gtsam.NonlinearFactorGraph:
         """The graph the batch solve takes: the run's graph with each view's corner factors

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from estimation.fiducials import tag_object_points
-from estimation.rig_model import (DISTORTION, CornerSighting, PoseTable, cal3_s2, corner_factor,
+from estimation.rig_model import (DISTORTION, INTRINSICS, CornerSighting, PoseTable, cal3_s2, corner_factor,
                                   corner_view_factor, radial_basis)
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
 from lab.core.geometry import Pose3, Rot3
@@ -157,15 +157,27 @@ def test_a_view_factor_refuses_a_tag_twice_and_a_lens_it_has_no_basis_for():
         corner_view_factor(C(0), [s], CAL, None, DISTORTION)
 
 
-def _slam() -> SfGraphSlam:
+def _slam(free_intrinsics: bool = False) -> SfGraphSlam:
     """The step tests' run graph (the rig, the survey's joint prior, print scales, the lens,
-    Huber): two steps of two views, nothing solved yet."""
+    Huber): two steps of two views, nothing solved yet.  The view factors hold the intrinsics
+    constant: by default these are held at the camera's, as a study's graph does; a run's graph
+    (`free_intrinsics`) has them as a variable of every corner factor."""
     slam = SfGraphSlam(MODEL, SlamConfig(observation="corners", corner_sigma_px=0.05, tag_scale_sigma=0.001),
                        rig=GEOM, calibration=_calibration(), camera=(K, np.zeros(5)))
+    assert slam.free_intrinsics
+    slam.free_intrinsics = free_intrinsics
     for views in _steps():
         for cam, dets, motion in views:
             slam.add_view(cam, dets, motion)
     return slam
+
+
+def test_a_graph_whose_intrinsics_are_a_variable_solves_its_single_factors():
+    slam = _slam(free_intrinsics=True)
+    slam._initialise_pending()
+    assert slam._batch_graph() is slam.graph
+    assert all(INTRINSICS in slam.graph.at(i).keys() for i in range(slam.graph.size())
+               if isinstance(slam.graph.at(i), gtsam.CustomFactor) and slam.graph.at(i).dim() == 8)
 
 
 def test_the_batch_solve_with_view_factors_is_the_solve_with_the_single_factors():
