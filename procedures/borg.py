@@ -1125,7 +1125,16 @@ class BorgProcedure:
                 # the layers summarised out of the incremental solver (Measurement.settle_built)
                 "settled": {"after_layers": self.measure.settle_after_layers, "tags": len(self.measure.slam.settled),
                             "layers_below": self.measure.settled_below},
-                "rig_calibration_file": str(self.bench.rig.calibration.file) if self.bench.rig.calibration.file else None}
+                "rig_calibration_file": str(self.bench.rig.calibration.file) if self.bench.rig.calibration.file else None,
+                # simulation, once the run has ended: the graph's rig against the truth (its NEES)
+                "rig_in_graph": self._rig_in_graph() if result != "running" else None}
+
+    def _rig_in_graph(self) -> dict[str, Any] | None:
+        if not self.bench.simulated or self.measure.slam.rig is None:
+            return None
+        from procedures.rig_survey import graph_against_truth
+
+        return graph_against_truth(self.measure.slam, self.bench.sim.world)
 
     def stop_devices(self) -> list[str]:
         return self.bench.stop_moved()

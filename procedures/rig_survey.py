@@ -263,3 +263,46 @@ def against_truth(calibration: Any, world: Any) -> tuple[dict[str, float], dict[
     scores["world_T_axis"] = nees(calibration.world_T_axis, tr.world_T_axis, calibration.covariance["world_T_axis"],
                                   dims=(0, 1, 3, 4))
     return errors, scores
+
+
+def graph_against_truth(slam: Any, world: Any) -> dict[str, dict[str, Any]]:
+    """(Simulation only: the estimator never sees this.)  The run graph's rig variables as they
+    stand, against the simulated world's true rig: each one's error and NEES.
+    - The mount and the base: over their 6 dof (expect ~6).
+    - The axis: its tilt and where it crosses the plate (4 dof; its yaw and height are gauge).
+    - The lift: its tilt (2 dof).
+    - The intrinsics: fx, fy, cx, cy (4 dof).
+    The survey's NEES (`against_truth`) says whether the survey's covariance covers its error; this
+    says whether the graph still does after every view has refined the rig.  A variable whose
+    marginal fails is left out."""
+    from estimation.rig_model import AXIS, BASE, INTRINSICS, LIFT, MOUNT, nees, tangent_error
+
+    tr = world.true_rig
+    out: dict[str, dict[str, Any]] = {}
+    poses = (("mount", MOUNT, tr.platform_T_camera, range(6)), ("base", BASE, tr.world_T_base, range(6)),
+             ("axis", AXIS, tr.world_T_axis, (0, 1, 3, 4)), ("lift", LIFT, tr.world_T_lift, (0, 1)))
+    estimate = slam.estimate
+    for name, key, truth, dims in poses:
+        if truth is None or not estimate.exists(key):
+            continue
+        try:
+            cov = slam.isam.marginalCovariance(key)
+        except (RuntimeError, IndexError):
+            continue
+        e = tangent_error(estimate.atPose3(key), truth)
+        out[name] = {"error_rad": [float(x) for x in e[:3]], "error_m": [float(x) for x in e[3:]],
+                     "nees": nees(estimate.atPose3(key), truth, cov, dims), "dof": len(list(dims))}
+    if estimate.exists(INTRINSICS):
+        try:
+            cov = slam.isam.marginalCovariance(INTRINSICS)
+        except (RuntimeError, IndexError):
+            cov = None
+        if cov is not None:
+            K = world.camera.K
+            idx = [0, 1, 3, 4]                      # fx, fy, cx, cy of (fx, fy, skew, cx, cy)
+            e = np.asarray(estimate.atCal3_S2(INTRINSICS).vector(), float)[idx] - np.array(
+                [K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+            c = np.asarray(cov, float)[np.ix_(idx, idx)]
+            out["intrinsics"] = {"error_px": [float(x) for x in e], "sigma_px": [float(x) for x in np.sqrt(np.diag(c))],
+                                 "nees": float(e @ np.linalg.solve(c, e)), "dof": 4}
+    return out
