@@ -178,8 +178,8 @@ class SfGraphSlam:
         self.rig = rig
         self.calibration = calibration
         # A run reads its corners through the intrinsics its rig survey estimated, and the survey
-        # knows them only to its covariance (at N = 6: 0.06 % in focal length, 0.4 px in the
-        # principal point, which move a tag at the structure's far side by 0.4-0.8 mm).  With the
+        # knows them only to its covariance (at N = 6 up to 0.06 % in focal length and 0.4 px in
+        # the principal point, which move a tag at the structure's far side by 0.4-0.8 mm).  With the
         # survey's joint prior the intrinsics are a variable of every corner factor: their
         # uncertainty reaches every tag's covariance, and the run's own views refine them.  Held at
         # the survey's estimate, the graph took it as exact and the mount absorbed its error: an
