@@ -12,11 +12,10 @@ import gtsam
 import numpy as np
 import pytest
 
-from estimation.fiducials import Detection, tag_object_points
-from estimation.rig_model import GAUGE_SIGMA, INTRINSICS, ViewMotion, cal3_s2
+from estimation.rig_model import GAUGE_SIGMA, INTRINSICS
 from estimation.sf_graphslam import SfGraphSlam, SlamConfig
-from lab.core.geometry import Pose3, Rot3
-from test_slam_step_exact import GEOM, K, MODEL, _calibration
+from lab.core.geometry import Pose3
+from test_slam_step_exact import GEOM, K, MODEL, _calibration, _view
 
 TAGS = (0, 1, 2, 9, 13, 36, 37, 38, 47)
 # the camera as it truly is: the survey's estimate (K) off by about its own 1-sigma (_calibration:
@@ -28,26 +27,7 @@ def _views(seed: int):
     """Three steps of two views of the 3x3x3's tags, the rig at its nominal geometry, the corners
     imaged through TRUE_K with 0.05 px noise (the graph is told K)."""
     rng = np.random.default_rng(seed)
-    steps = []
-    for angles in ((-0.6, -0.3), (0.0, 0.3), (0.6, 0.9)):
-        views = []
-        for a in angles:
-            motion = ViewMotion(a, (0.0, 0.0, 0.0, 0.0, 0.1047, 0.0))
-            cam = GEOM.predict_nominal(motion)
-            pinhole = gtsam.PinholeCameraCal3_S2(cam, cal3_s2(TRUE_K))
-            dets = []
-            for t in TAGS:
-                spec = MODEL.tags[t]
-                ct = cam.between(spec.structure_T_tag)
-                if float(ct.rotation().matrix()[:, 2] @ ct.translation()) >= 0:
-                    continue
-                uv = np.array([pinhole.project(spec.structure_T_tag.transformFrom(p))
-                               for p in tag_object_points(spec.size_m)]) + rng.normal(0.0, 0.05, (4, 2))
-                ippe = ct.compose(Pose3(Rot3.Expmap(rng.normal(0.0, 0.005, 3)), rng.normal(0.0, 0.001, 3)))
-                dets.append(Detection(t, uv, ippe, np.eye(6) * 1e-4, 0.05, 10.0, False, spec.size_m))
-            views.append((cam, dets, motion))
-        steps.append(views)
-    return steps
+    return [[_view(a, TAGS, rng, TRUE_K) for a in angles] for angles in ((-0.6, -0.3), (0.0, 0.3), (0.6, 0.9))]
 
 
 def _survey(k_sigma: tuple[float, float] = (1.0, 0.5)) -> np.ndarray:

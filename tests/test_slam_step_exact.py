@@ -187,13 +187,13 @@ def _steps(seed: int = 0):
     return [[_view(a, (0, 1, 2, 9, 13, 36, 37, 38, 47), rng) for a in angles] for angles in ((-0.6, -0.3), (0.0, 0.3))]
 
 
-def _view(turntable_rad: float, tags, rng):
+def _view(turntable_rad: float, tags, rng, imaging_K: np.ndarray = K):
     """One view at this turntable angle (the rig at its nominal geometry): the camera, the
-    detections of those of `tags` that face it (corners with 0.05 px noise, IPPE a few tenths of a
-    degree off), the motion."""
+    detections of those of `tags` that face it (corners imaged through `imaging_K` with 0.05 px
+    noise, IPPE a few tenths of a degree off), the motion."""
     motion = ViewMotion(turntable_rad, (0.0, 0.0, 0.0, 0.0, 0.1047, 0.0))
     cam = GEOM.predict_nominal(motion)
-    pinhole = gtsam.PinholeCameraCal3_S2(cam, cal3_s2(K))
+    pinhole = gtsam.PinholeCameraCal3_S2(cam, cal3_s2(imaging_K))
     dets = []
     for t in tags:
         spec = MODEL.tags[t]
