@@ -1,6 +1,6 @@
 """The run's corner factor's arithmetic, compiled: the reprojection error of a tag's four corners and
-its Jacobians, in one call, with the intrinsics fixed (a run's graph) or a variable (the rig
-survey's).
+its Jacobians, in one call, with the intrinsics fixed (a study's graph) or a variable (the rig
+survey's, and a calibrated run's graph).
 
 GTSAM's Python `CustomFactor` calls back into Python once per corner factor per relinearisation.
 Written in numpy, the callback spent ~22 of its ~32 us in numpy's fixed cost per call on 4-row

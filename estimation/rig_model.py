@@ -581,8 +581,9 @@ def _huber(k: float) -> gtsam.noiseModel.mEstimator.Base:
 
 def _corner_error(camera_key: int, tag_key: int, intrinsics_key: int | None, meas: np.ndarray, local: np.ndarray,
                   cal: np.ndarray | None, scale_key: int | None, lens: tuple[int, np.ndarray] | None):
-    """The corner factor's error function: with the intrinsics fixed at `cal` (a run's graph, the
-    bound) or read from the variable `intrinsics_key` (the rig survey), the same error and
+    """The corner factor's error function: with the intrinsics fixed at `cal` (a study's graph, a
+    run's without a survey prior) or read from the variable `intrinsics_key` (the rig survey, and a
+    calibrated run's graph and its bound: `SfGraphSlam.free_intrinsics`), the same error and
     Jacobians as `project_corners`, computed by the compiled `estimation.corner_kernel`.  GTSAM
     calls it back once per corner factor per relinearisation; in numpy the fixed cost per call on
     4-row arrays, not the arithmetic, was what such a callback spent its time on (32 us a
