@@ -108,14 +108,17 @@ def test_each_run_is_told_with_its_frame():
              "sigma_m": 0.004, "replanned": False, "nees": 0.5, "nees_frame": 0.4, "error_frame_m": 0.0019},
             {"name": "c", "layer": 0, "fault": True, "verdict": "ok", "views": 4, "error_m": 0.003, "sigma_m": 0.0004,
              "replanned": False, "nees": 50.0}]
-    t = {"n": 3, "seed": 2, "modules": mods, "frame_offset_mm": 0.4, "frame_rotation_mrad": 0.2}
+    t = {"n": 3, "seed": 2, "modules": mods, "frame_offset_mm": 0.4, "frame_rotation_mrad": 0.2,
+         "graph_nees": {"mount": 4.24, "base": 9.0, "intrinsics": 3.06}}
     p = per_run(t)
     # good modules only; the maxima over those passed `ok`
     assert (p["nees_mean"], p["nees_frame_mean"]) == (pytest.approx(6.25), pytest.approx(1.2))
     assert (p["ok_error_mm_max"], p["ok_error_frame_mm_max"]) == (pytest.approx(0.9), pytest.approx(0.3))
     text = to_markdown({"command": "lab bench layers", "runs": 1, "wall_s": 1.0, "rows": aggregate([
         {**t, "wall_s": 1.0, "peak_rss_mb": None, "slam_update_s_median": 0.01}]), "trials": [t]})
-    assert "| 3 | 2 | 0.40 | 0.20 | 6.2 | 1.2 | 0.90 | 0.30 |" in text
+    assert "| 3 | 2 | 0.40 | 0.20 | 6.2 | 1.2 | 0.90 | 0.30 | 4.2 / 3.1 |" in text
+    # a run journaled before the graph's own rig was reported shows dashes, not a failure
+    assert per_run({k: v for k, v in t.items() if k != "graph_nees"})["graph_nees_mount"] is None
 
 
 def test_a_run_taken_as_it_was_found_leaves_the_time_per_module_to_the_others():
@@ -149,6 +152,11 @@ def test_the_quick_study_verifies_every_layer(lab, tmp_path):
         # docs/benchmarks.md with the command, not a test's: it is missed by up to 0.2 mm at N = 4-5
         assert row["unverified"] == 0 and row["false_flags"] == 0, row
         assert row["error_mm_max"] is None or row["error_mm_max"] > 0, row
+    # each run says how its graph's own mount and intrinsics ended against the truth
+    trials = json.loads((tmp_path / "layers" / "layers.json").read_text())["trials"]
+    assert len(trials) == 2
+    for t in trials:
+        assert {"mount", "intrinsics"} <= set(t["graph_nees"]) and all(v >= 0 for v in t["graph_nees"].values()), t
 
 
 def _attempt(tmp_path, n=3, speedup=100.0, summary=None, checkpoint=True):

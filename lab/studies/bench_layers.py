@@ -179,7 +179,9 @@ def trial(out: Path, n: int, seed: int, speedup: float) -> dict[str, Any]:
     # a resumed run's memory is its processes'
     return {"n": n, "seed": seed, "result": s["result"], "wall_s": wall, "modules": rows,
             "peak_rss_mb": peak, "views": s.get("views"), "resumed": resumed,
-            "slam_update_s_median": run.slam_update_s_median, **frame}
+            "slam_update_s_median": run.slam_update_s_median,
+            # the run graph's own rig against the truth as the run ended (summary `rig_in_graph`)
+            "graph_nees": {k: v["nees"] for k, v in (s.get("rig_in_graph") or {}).items()}, **frame}
 
 
 def _frame(model: Any, modules: list[dict[str, Any]], rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -296,15 +298,17 @@ def to_markdown(res: dict[str, Any]) -> str:
             f"{cell(r.get('slam_update_ms_median') if whole else None, '.1f')} | "
             f"{cell(r.get('peak_rss_mb') if whole else None, '.0f')} |")
     lines += ["", "Per run (good modules): the frame all of its modules share, the NEES whole and about that frame, "
-              "the largest error of a module passed `ok`, whole and about the frame:", "",
+              "the largest error of a module passed `ok`, whole and about the frame; and the NEES of the graph's own "
+              "camera mount and intrinsics as the run ended:", "",
               "| N | seed | frame offset (mm) | frame rotation (mrad) | NEES mean (3) | NEES about the frame | "
-              "max of `ok` (mm) | max of `ok` about the frame (mm) |",
-              "|---|---|---|---|---|---|---|---|"]
+              "max of `ok` (mm) | max of `ok` about the frame (mm) | graph NEES mount (6) / intrinsics (4) |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for t in res.get("trials", []):
         p = per_run(t)
         lines.append(f"| {p['n']} | {p['seed']} | {cell(p['frame_offset_mm'])} | {cell(p['frame_rotation_mrad'])} | "
                      f"{cell(p['nees_mean'], '.1f')} | {cell(p['nees_frame_mean'], '.1f')} | "
-                     f"{cell(p['ok_error_mm_max'])} | {cell(p['ok_error_frame_mm_max'])} |")
+                     f"{cell(p['ok_error_mm_max'])} | {cell(p['ok_error_frame_mm_max'])} | "
+                     f"{cell(p['graph_nees_mount'], '.1f')} / {cell(p['graph_nees_intrinsics'], '.1f')} |")
     return "\n".join(lines)
 
 
@@ -319,7 +323,9 @@ def per_run(t: dict[str, Any]) -> dict[str, Any]:
             "frame_rotation_mrad": t.get("frame_rotation_mrad"),
             "nees_mean": _mean(good, "nees"), "nees_frame_mean": _mean(good, "nees_frame"),
             "ok_error_mm_max": max((m["error_m"] * 1e3 for m in ok), default=None),
-            "ok_error_frame_mm_max": max(about) * 1e3 if about else None}
+            "ok_error_frame_mm_max": max(about) * 1e3 if about else None,
+            "graph_nees_mount": (t.get("graph_nees") or {}).get("mount"),
+            "graph_nees_intrinsics": (t.get("graph_nees") or {}).get("intrinsics")}
 
 
 def _progress(r: dict[str, Any]) -> str:
