@@ -88,6 +88,12 @@ def _borg_process(cmd: list[str], out: Path, log: Path | None, mode: str) -> Bor
     return BorgRun(cmd, summary, wall, peak_mb, median_metric(out / "run.mcap", "slam/update_s"))
 
 
+def graph_nees(summary: dict[str, Any]) -> dict[str, float]:
+    """A simulated run's graph, its own rig against the truth as the run ended: variable -> NEES
+    (summary `rig_in_graph`; empty for a run from before it was reported)."""
+    return {k: v["nees"] for k, v in (summary.get("rig_in_graph") or {}).items()}
+
+
 def cell(value: Any, spec: str = ".2f") -> str:
     """A table cell of a study's markdown: the figure, or a dash where there is none."""
     return "—" if value is None else format(value, spec)

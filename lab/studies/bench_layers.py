@@ -43,8 +43,8 @@ import numpy as np
 
 from lab.core.executor import Trial, add_executor_arguments
 from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED
-from lab.studies.bench_common import (BorgRun, cell, median_metric, report_study, resume_borg, run_borg, run_trial_study,
-                                      study_heading, unit_vector)
+from lab.studies.bench_common import (BorgRun, cell, graph_nees, median_metric, report_study, resume_borg, run_borg,
+                                      run_trial_study, study_heading, unit_vector)
 
 FAULT_OFFSET_M = 0.006                     # 1 mm beyond the 5 mm tolerance
 FAULT_ROTATION_RAD = math.radians(1.5)     # 0.5 deg beyond 1 deg
@@ -179,9 +179,7 @@ def trial(out: Path, n: int, seed: int, speedup: float) -> dict[str, Any]:
     # a resumed run's memory is its processes'
     return {"n": n, "seed": seed, "result": s["result"], "wall_s": wall, "modules": rows,
             "peak_rss_mb": peak, "views": s.get("views"), "resumed": resumed,
-            "slam_update_s_median": run.slam_update_s_median,
-            # the run graph's own rig against the truth as the run ended (summary `rig_in_graph`)
-            "graph_nees": {k: v["nees"] for k, v in (s.get("rig_in_graph") or {}).items()}, **frame}
+            "slam_update_s_median": run.slam_update_s_median, "graph_nees": graph_nees(s), **frame}
 
 
 def _frame(model: Any, modules: list[dict[str, Any]], rows: list[dict[str, Any]]) -> dict[str, Any]:

@@ -34,8 +34,8 @@ import numpy as np
 from lab.core.executor import Trial, add_executor_arguments
 from lab.core.verdicts import FLAGGED, OK, UNCERTAIN, UNVERIFIED
 from lab.core.imaging import IDEAL, scenario_tables
-from lab.studies.bench_common import (cell, report_study, run_borg, run_trial_study, study_heading, study_size,
-                                     unit_vector)
+from lab.studies.bench_common import (cell, graph_nees, report_study, run_borg, run_trial_study, study_heading,
+                                     study_size, unit_vector)
 
 # A scenario's [camera] and [tags] for each camera quality (omitted keys keep the rig's defaults).
 CAMERAS: dict[str, str] = {
@@ -119,8 +119,7 @@ def trial(out: Path, seed: int, scale: float, camera: str, modules: int, speedup
         "bound_rms_m": [m["bound_position_rms_m"] for m in read if m.get("bound_position_rms_m") is not None],
         "survey_nees": survey.get("nees"),
         "survey_measured": survey.get("measured"),
-        # the run graph's rig against the truth as the run ended (procedures/rig_survey.graph_against_truth)
-        "graph_nees": {k: v["nees"] for k, v in (s.get("rig_in_graph") or {}).items()},
+        "graph_nees": graph_nees(s),
         "corner_rms_px": s.get("corner_rms_px"),
         "corner_noise": s.get("corner_noise"),
         "views": s.get("views"),
