@@ -129,4 +129,21 @@ def test_visibility_follows_the_rules_tag_by_tag(n):
     for k in rng.choice(len(p.candidates), 40, replace=False):
         view = p.candidates[int(k)]
         present = [t for t in everything if rng.random() < 0.7]
-        assert p.visible(view, present) == _visible_one_by_one(p, view, present)
+        got, want = p.visible(view, present), _visible_one_by_one(p, view, present)
+        # the same tags, nearest first; tags at the same depth to round-off (placed symmetrically)
+        # may come in either order
+        assert sorted(got) == sorted(want)
+        depth = _depths(p, view, got)
+        assert all(depth[a] <= depth[b] + 1e-9 for a, b in zip(got, got[1:])), (got, want)
+
+
+def _depths(p: SurveyPlanner, view: View, tags: list[int]) -> dict[int, float]:
+    """Each tag's mean corner depth in the camera of `view` (the order `visible` reports)."""
+    c_T_s = p.structure_T_camera(view).inverse().matrix()
+    out = {}
+    for tid in tags:
+        tag = p.model.tags[tid]
+        corners = [tag.structure_T_tag.transformFrom(np.array([x, y, 0.0]) * tag.size_m / 2)
+                   for x, y in ((-1, 1), (1, 1), (1, -1), (-1, -1))]
+        out[tid] = float(np.mean([(c_T_s[:3, :3] @ q + c_T_s[:3, 3])[2] for q in corners]))
+    return out

@@ -35,6 +35,7 @@ import math
 import os
 import time
 
+from lab.core.errors import UserError
 from lab.studies.bench_common import save_figure
 from lab.studies.fiducial_scenes import _camera, random_tag_pose, twenty_tag_frames
 
@@ -53,6 +54,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--trials", type=int, default=None,
                         help="tag poses per distance (default 200, --quick 40)")
+    parser.add_argument("--only", choices=["imaging"], default=None,
+                        help="imaging: only the corner error under the sim rig's whole imaging, one effect at a "
+                             "time taken away (--frames frames of 6 tags each)")
+    parser.add_argument("--frames", type=int, default=None,
+                        help="frames of the imaging study (default 300, --quick 20)")
 
 
 # ---- the camera and the scene (random_tag_pose, tag_pose_on_ray: fiducial_scenes) ----------------
@@ -183,6 +189,7 @@ def timing_study(frames: int, seed: int) -> dict:
 # ---- output -------------------------------------------------------------------------------------
 def _markdown(res: dict, command: str) -> str:
     from lab.studies import bench_fiducials_corners as corners
+    from lab.studies import bench_fiducials_imaging as imaging
     from lab.studies import bench_fiducials_photos as photos
 
     acc, tim = res["accuracy"], res["timing"]
@@ -198,6 +205,8 @@ def _markdown(res: dict, command: str) -> str:
     lines += photos.photo_timing_markdown(res["timing_photos"])
     lines.append("")
     lines += corners.markdown(res["corners"], res["tilt"])
+    lines.append("")
+    lines += imaging.markdown(res["imaging"])
     lines.append("")
     lines += photos.quality_markdown(res["image_quality"])
     lines.append("")
@@ -244,6 +253,7 @@ def _plots(res: dict, out_dir: str) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from lab.studies import bench_fiducials_corners as corners
+    from lab.studies import bench_fiducials_imaging as imaging
     from lab.studies import bench_fiducials_photos as photos
 
     quick = bool(getattr(args, "quick", False))
@@ -254,12 +264,29 @@ def run(args: argparse.Namespace) -> int:
     os.makedirs(out_dir, exist_ok=True)
     command = "lab bench fiducials" + (" --quick" if quick else "") + (f" --seed {seed}" if seed else "") + (
         f" --trials {args.trials}" if getattr(args, "trials", None) else "")
+    imaging_frames = getattr(args, "frames", None)
+    imaging_frames = (20 if quick else 300) if imaging_frames is None else int(imaging_frames)
+    if imaging_frames < 1:
+        raise UserError(f"--frames must be at least 1, got {imaging_frames}")
+    if getattr(args, "only", None) == "imaging":
+        command = (f"lab bench fiducials --only imaging --frames {imaging_frames}"
+                   + (f" --seed {seed}" if seed else ""))
+        t0 = time.perf_counter()
+        study = imaging.imaging_study(imaging_frames, seed)
+        study["elapsed_s"] = time.perf_counter() - t0
+        study["command"] = command
+        with open(os.path.join(out_dir, "imaging.json"), "w") as f:
+            json.dump(study, f, indent=2)
+        print(json.dumps(study, indent=2) if getattr(args, "json", False) else
+              "\n".join([f"`{command}` ({study['elapsed_s']:.0f} s)", "", *imaging.markdown(study)]))
+        return 0
     t0 = time.perf_counter()
     res = {"command": command, "timing": timing_study(frames, seed),
            "timing_vs_apriltag3": photos.timing_study(frames, seed),
            "timing_photos": photos.photo_timing_study(3 if quick else 7),
            "corners": corners.corner_study(24 if quick else 120, seed),
            "tilt": corners.tilt_study(20 if quick else 100, seed),
+           "imaging": imaging.imaging_study(imaging_frames, seed),
            "photos": photos.photo_study(quick),
            "rendered": photos.render_study(2 if quick else 8, seed),
            "accuracy": accuracy_study(trials, seed),
