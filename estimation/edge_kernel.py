@@ -161,102 +161,14 @@ def edge_geometry(q: np.ndarray, coarse: bool, min_reach: float, max_reach: floa
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def ring_point(h: np.ndarray, side: int, t: float, depth: float) -> tuple:
-    """The image point `depth` (of the black square's edge) outside side `side` of the quad whose
-    unit-square homography is `h`, a share `t` along it (`tag_quads._quiet_zone_points`)."""
-    if side == 0:
-        u, v = t, -depth
-    elif side == 1:
-        u, v = 1.0 + depth, t
-    elif side == 2:
-        u, v = 1.0 - t, 1.0 + depth
-    else:
-        u, v = -depth, 1.0 - t
-    Z = h[6] * u + h[7] * v + 1.0
-    return (h[0] * u + h[1] * v + h[2]) / Z, (h[3] * u + h[4] * v + h[5]) / Z
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def light_gradient(g: np.ndarray, q: np.ndarray, depth: float, max_dev: float, min_samples: int) -> tuple:
-    """Each tag's log-gain gradient (N,), (N,) per px (`tag_quads._light_gradient`): the log of the
-    quiet zone's middle, one sample a pixel along each side, each side less its own mean (samples
-    more than `max_dev` off its median left out), regressed on the samples' positions; zero
-    without `min_samples` on a side of each pair of opposite sides."""
-    H, W = g.shape
-    N = q.shape[0]
-    gx = np.zeros(N)
-    gy = np.zeros(N)
-    for k in range(N):
-        h = square_to_quad(q[k])
-        sxx, sxy, syy, sxz, syz = 0.0, 0.0, 0.0, 0.0, 0.0
-        pair_a, pair_b = False, False
-        for e in range(4):
-            a, b = q[k, e], q[k, (e + 1) % 4]
-            m = max(int(math.sqrt((b[0] - a[0]) ** 2 + (b[1] - a[1]) ** 2)), 4)
-            xs = np.empty(m)
-            ys = np.empty(m)
-            zs = np.empty(m)
-            use = np.zeros(m, np.bool_)
-            n = 0
-            for j in range(m):
-                x, y = ring_point(h, e, 0.1 + 0.8 * (j + 0.5) / m, depth)
-                xs[j], ys[j] = x, y
-                if x >= 0 and x <= W - 1 and y >= 0 and y <= H - 1:
-                    val = _bilinear(g, x, y)
-                    if val > 0:
-                        zs[j] = math.log(val)
-                        use[j] = True
-                        n += 1
-            if n < min_samples:
-                continue
-            buf = np.empty(n)
-            n = 0
-            for j in range(m):
-                if use[j]:
-                    buf[n] = zs[j]
-                    n += 1
-            buf.sort()
-            med = buf[(n - 1) // 2]
-            cnt, mx, my, mz = 0.0, 0.0, 0.0, 0.0
-            for j in range(m):
-                if use[j] and abs(zs[j] - med) > max_dev:
-                    use[j] = False
-                if use[j]:
-                    cnt += 1.0
-                    mx += xs[j]
-                    my += ys[j]
-                    mz += zs[j]
-            if cnt < min_samples:
-                continue
-            if e % 2 == 0:
-                pair_a = True
-            else:
-                pair_b = True
-            mx, my, mz = mx / cnt, my / cnt, mz / cnt
-            for j in range(m):
-                if use[j]:
-                    dx, dy, dz = xs[j] - mx, ys[j] - my, zs[j] - mz
-                    sxx += dx * dx
-                    sxy += dx * dy
-                    syy += dy * dy
-                    sxz += dx * dz
-                    syz += dy * dz
-        det = sxx * syy - sxy * sxy
-        if pair_a and pair_b and det > 1e-3 * (sxx + syy) ** 2:
-            gx[k] = (syy * sxz - sxy * syz) / det
-            gy[k] = (sxx * syz - sxy * sxz) / det
-    return gx, gy
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
 def crossings(g: np.ndarray, q: np.ndarray, geo: np.ndarray, coarse: bool, check: np.ndarray,
               quiet_zone: bool, consts: np.ndarray):
     """Every row's crossing (image px) and what the line fit needs of it; see `_fit_pass_numpy`.
     Returns (edge_of (R,), points (R, 2), row_ok (R,), occluded (R,), lvl_ok (R,))."""
     (min_rows, min_contrast, tol_frac, noise_sigmas, occ_min_cell, occ_abs_min_cell, max_drop, far_px,
-     min_contrast_share, guard, edge_levels_min_cell, light_depth, light_max_dev) = (
-        consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6], consts[7], consts[8],
-        int(consts[9]), consts[10], consts[11], consts[12])
+     min_contrast_share, guard, edge_levels_min_cell) = (consts[0], consts[1], consts[2], consts[3], consts[4],
+                                                         consts[5], consts[6], consts[7], consts[8],
+                                                         int(consts[9]), consts[10])
     H, W = g.shape
     N = q.shape[0]
     E = N * 4
@@ -390,55 +302,21 @@ def crossings(g: np.ndarray, q: np.ndarray, geo: np.ndarray, coarse: bool, check
         for e in range(4 * k, 4 * k + 4):
             if not own[e]:
                 dark[e], bright[e] = t_dark[k], t_bright[k]
-    # the light across each tag (`tag_quads._light_across`): every sample read as if lit as the
-    # tag's centre is; an edge's own levels are the medians of its window ends so flattened
-    gx = np.zeros(N)
-    gy = np.zeros(N)
-    cx = np.zeros(N)
-    cy = np.zeros(N)
-    if quiet_zone:
-        gx, gy = light_gradient(g, q, light_depth, light_max_dev, int(min_rows))
-        for k in range(N):
-            cx[k] = (q[k, 0, 0] + q[k, 1, 0] + q[k, 2, 0] + q[k, 3, 0]) / 4.0
-            cy[k] = (q[k, 0, 1] + q[k, 1, 1] + q[k, 2, 1] + q[k, 3, 1]) / 4.0
-        f_dark = np.empty(R)
-        f_bright = np.empty(R)
-        for e in range(E):
-            k = e // 4
-            reach, nx, ny = geo[e, 1], geo[e, 2], geo[e, 3]
-            for i in range(start[e], start[e + 1]):
-                f_dark[i] = v_dark[i] / math.exp(gx[k] * (p_on[i, 0] - reach * nx - cx[k])
-                                                 + gy[k] * (p_on[i, 1] - reach * ny - cy[k]))
-                f_bright[i] = v_bright[i] / math.exp(gx[k] * (p_on[i, 0] + reach * nx - cx[k])
-                                                     + gy[k] * (p_on[i, 1] + reach * ny - cy[k]))
-            if own[e]:
-                dark[e] = _lower_median(f_dark, lvl_ok, start[e], start[e + 1], min_rows)
-                bright[e] = _lower_median(f_bright, lvl_ok, start[e], start[e + 1], min_rows)
     fn = np.empty(L)
     step = np.empty(L - 1)
     for e in range(E):
         contrast = bright[e] - dark[e]
         Ae, sgn, rows_axis = geo[e, 5], geo[e, 6], geo[e, 4] > 0.5
-        k = e // 4
         for i in range(start[e], start[e + 1]):
             sl = s_line[i]
-            centre = np.rint(sl if math.isfinite(sl) else 0.0)
-            # the light along the window is exponential in the pixel's index: one exp a row and
-            # one a window step (an exp a pixel cost ~6 % of a 20-tag frame)
-            flat, step_j = 1.0, 1.0
-            if quiet_zone and (gx[k] != 0.0 or gy[k] != 0.0):
-                s0 = centre - m_max
-                px, py = (s0, rr[i]) if rows_axis else (rr[i], s0)
-                flat = math.exp(-(gx[k] * (px - cx[k]) + gy[k] * (py - cy[k])))
-                step_j = math.exp(-(gx[k] if rows_axis else gy[k]))
             for j in range(L):
                 if not inside[i, j]:
                     fn[j] = 1.0
                 elif contrast > 0:
-                    fn[j] = (vals[i, j] * flat - dark[e]) / contrast
+                    fn[j] = (vals[i, j] - dark[e]) / contrast
                 else:
                     fn[j] = np.nan
-                flat *= step_j
+            centre = np.rint(sl if math.isfinite(sl) else 0.0)
             if coarse:
                 best_j, best = 0, -np.inf
                 for j in range(L - 1):

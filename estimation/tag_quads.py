@@ -20,10 +20,7 @@ symmetric about the current line so that truncated blur tails cancel and passes 
 within a window's reach of a corner are left out.  The dark and bright levels are the edge's mean
 half a cell inside and outside it, or its tag's black and white for cells under 4 px.  A window off
 the image on the dark side loses its row; on the bright side (a tag touching the frame) the quiet
-zone is taken to go on past the edge.  On the lab's tags (a white quiet zone) every sample is
-first read as if the tag were lit evenly at its centre's light (`_light_across`: a plane in log
-fitted to the middle of the quiet zone): vignetting and uneven light otherwise turn the lines and
-move the tag across the frame, the same way in every sighting.  Tags with cells under 4.5 px start with a coarse pass (the
+zone is taken to go on past the edge.  Tags with cells under 4.5 px start with a coarse pass (the
 steepest dark-to-bright step within 1.5 cells), which pulls in a detector's corner 2-3 px off; fine
 passes follow until no corner moves more than CONVERGED_PX.  An edge with fewer than `MIN_ROWS`
 usable rows keeps the line it came with (and its quad is reported as not fully fitted).
@@ -98,13 +95,7 @@ RING_MIN_EDGE_SIGMAS = 1.15    # ... and this many of the tag's edge blur (`edge
                                # a clean sample loses at most ~0.13 of the contrast to a cell edge's
                                # blur whatever the lens
 EDGE_BLUR_NEAR_PX = 0.5        # `edge_blur_px`: the contrast across an edge at +-this ...
-RING_DEPTHS_CELLS = (0.3, 0.5)
-# The light across a tag (`_light_gradient`) is read in the middle of its quiet zone, this many
-# cells outside the black square (clear of both its edges' blur on cells of 3 px and more), one
-# sample a pixel; samples more than LIGHT_MAX_DEV (in log, ~relative) off their side's median are
-# something over the quiet zone and left out
-LIGHT_DEPTH_CELLS = 0.5
-LIGHT_MAX_DEV = 0.15  # the perimeter check's samples, from the black square's edge (`ring_deviation`)
+RING_DEPTHS_CELLS = (0.3, 0.5)  # the perimeter check's samples, from the black square's edge (`ring_deviation`)
 
 
 @dataclass(frozen=True)
@@ -171,8 +162,7 @@ def _fit_pass(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndar
 # the kernel's constants, in the order `edge_kernel.crossings` unpacks them
 _KERNEL_CONSTS = np.array([MIN_ROWS, MIN_CONTRAST, OCCLUSION_TOLERANCE, OCCLUSION_NOISE_SIGMAS, OCCLUSION_MIN_CELL_PX,
                            OCCLUSION_ABSOLUTE_MIN_CELL_PX, OCCLUSION_MAX_DROP, OCCLUSION_FAR_PX,
-                           OCCLUSION_MIN_CONTRAST, OCCLUSION_GUARD_ROWS, EDGE_LEVELS_MIN_CELL_PX,
-                           LIGHT_DEPTH_CELLS / CELLS, LIGHT_MAX_DEV], dtype=np.float64)
+                           OCCLUSION_MIN_CONTRAST, OCCLUSION_GUARD_ROWS, EDGE_LEVELS_MIN_CELL_PX], dtype=np.float64)
 
 
 def _fit_pass_numpy(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, np.ndarray] | None, coarse: bool,
@@ -300,16 +290,6 @@ def _fit_pass_numpy(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, n
     dark = np.where(own, dark_m, np.repeat(tag_dark, 4))
     bright = np.where(own, bright_m, np.repeat(tag_bright, 4))
     contrast = bright - dark
-    if quiet_zone:
-        # the light changes across a tag (vignetting, uneven light): every sample is read as if lit
-        # as the tag's centre is (`_light_across`), an edge's own levels from its flattened ends
-        light = _light_across(grey, q)
-        f_dark, f_bright = v_dark / light(edge_of, p_dark), v_bright / light(edge_of, p_bright)
-        dark = np.where(own, _edge_medians(edge_of, f_dark, lvl_ok, E), dark)
-        bright = np.where(own, _edge_medians(edge_of, f_bright, lvl_ok, E), bright)
-        rows_e = np.repeat(edge_of[:, None], vals.shape[1], axis=1)
-        vals = vals / light(rows_e.ravel(), np.column_stack([x.ravel(), y.ravel()]).astype(np.float64)).reshape(vals.shape)
-    contrast = bright - dark
     with np.errstate(invalid="ignore", divide="ignore"):
         # an edge without contrast gives NaN, never inf (its rows are dropped below)
         fn = (vals - dark[edge_of, None]) / np.where(contrast > 0, contrast, np.nan)[edge_of, None]
@@ -372,105 +352,6 @@ def _fit_pass_numpy(grey: np.ndarray, q: np.ndarray, camera: tuple[np.ndarray, n
     return p, d, fitted, np.where(fitted, rms.reshape(N, 4), np.nan), stats, occ_frac.reshape(N, 4)
 
 
-def _quiet_zone_points(q: np.ndarray, side: int, t: np.ndarray, depth: float) -> np.ndarray:
-    """(m, 2): the points `depth` (of the black square's edge) outside side `side` (corner side ->
-    side + 1) of quad `q` (4, 2), at shares `t` along it, through the unit square's homography."""
-    h = edge_kernel.square_to_quad(q)
-    u, v = [(t, np.full_like(t, -depth)), (np.full_like(t, 1.0 + depth), t), (1.0 - t, np.full_like(t, 1.0 + depth)),
-            (np.full_like(t, -depth), 1.0 - t)][side]
-    Z = h[6] * u + h[7] * v + 1.0
-    return np.column_stack([(h[0] * u + h[1] * v + h[2]) / Z, (h[3] * u + h[4] * v + h[5]) / Z])
-
-
-def _light_gradient(grey: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each tag's log-gain gradient (N,), (N,) per px, from the middle of its quiet zone: one
-    sample a pixel along each side (its middle 80 %), each side less its own mean (so whatever
-    the blur leaves there, the same all along a side, drops out; samples more than
-    LIGHT_MAX_DEV off the side's median, a strut over the quiet zone, left out), regressed on the
-    samples' positions.  No gradient without MIN_ROWS samples on a side of each pair of opposite
-    sides: two parallel sides alone do not show the light across them."""
-    H, W = grey.shape
-    N = len(q)
-    gx, gy = np.zeros(N), np.zeros(N)
-    for k in range(N):
-        S = np.zeros(5)                  # sxx, sxy, syy, sxz, syz
-        pairs = [False, False]
-        for e in range(4):
-            m = max(int(np.linalg.norm(q[k, (e + 1) % 4] - q[k, e])), 4)
-            p = _quiet_zone_points(q[k], e, 0.1 + 0.8 * (np.arange(m) + 0.5) / m, LIGHT_DEPTH_CELLS / CELLS)
-            inside = (p[:, 0] >= 0) & (p[:, 0] <= W - 1) & (p[:, 1] >= 0) & (p[:, 1] <= H - 1)
-            val = _bilinear(grey, p[:, 0], p[:, 1])
-            use = inside & (val > 0)
-            if use.sum() < MIN_ROWS:
-                continue
-            z = np.log(np.where(use, val, 1.0))
-            med = np.sort(z[use])[(use.sum() - 1) // 2]
-            use &= np.abs(z - med) <= LIGHT_MAX_DEV
-            if use.sum() < MIN_ROWS:
-                continue
-            pairs[e % 2] = True
-            d = np.column_stack([p[use], z[use]])
-            d -= d.sum(axis=0) / len(d)
-            for i, (x, y, zz) in enumerate(d):
-                S += (x * x, x * y, y * y, x * zz, y * zz)
-        sxx, sxy, syy, sxz, syz = S
-        det = sxx * syy - sxy * sxy
-        if pairs[0] and pairs[1] and det > 1e-3 * (sxx + syy) ** 2:
-            gx[k] = (syy * sxz - sxy * syz) / det
-            gy[k] = (sxx * syz - sxy * sxz) / det
-    return gx, gy
-
-
-def _light_across(grey: np.ndarray, q: np.ndarray):
-    """`light(edges, points)`: the light at image `points` (M, 2) of the tags of `edges` (M,),
-    relative to each tag's centre (its quad's corners' mean).
-
-    Why.  A row's crossing is the window's length less the sum of its pixels normalised by the
-    edge's dark and bright levels; a row lit a fraction delta brighter than those levels reads its
-    crossing ~1.25 delta x the window's half-width off (the dark level's share adds to the bright
-    half's), and light changing across the window moves it too.  Vignetting and uneven light
-    change the light by 1-2 % across a near tag.  On an edge with its own levels, the rows at one
-    end then cross a few hundredths of a pixel off those at the other and the line turns; on a
-    small tag's edges, which take the tag's levels (its centre's light), the edges away from the
-    frame's centre read dimmer, those towards it brighter, and both move the tag away from the
-    frame's centre.  The simulated default camera, noise-free: 0.053 px rms of corner error where
-    the same frames without vignetting and uneven light read 0.029, and corners pushed ~0.005 px
-    outwards, the same way in every sighting of that part of the frame, which the run's graph
-    cannot average away (`lab bench fiducials --only imaging`).  The light is a plane in log
-    over each tag (`_light_gradient`); every sample the pass reads, window pixels and levels, is
-    divided by it, so the tag is read as if lit evenly at its centre's light, which the tag's own
-    levels (its cells' clusters, spread over it) are."""
-    gx, gy = _light_gradient(grey, q)
-    c = q.mean(axis=1)
-
-    def light(edges: np.ndarray, p: np.ndarray) -> np.ndarray:
-        k = edges // 4
-        return np.exp(gx[k] * (p[:, 0] - c[k, 0]) + gy[k] * (p[:, 1] - c[k, 1]))
-
-    return light
-
-
-def _edge_medians(edge_of: np.ndarray, v: np.ndarray, ok: np.ndarray, n_edges: int) -> np.ndarray:
-    """Each edge's lower median of `v` over its rows where `ok` (NaN for fewer than MIN_ROWS)."""
-    R = len(edge_of)
-    if R == 0:
-        return np.full(n_edges, np.nan)
-    cnt = np.bincount(edge_of, ok, n_edges).astype(np.int64)
-    rows = np.bincount(edge_of, minlength=n_edges)
-    start = np.cumsum(rows) - rows
-    # per edge (edge_of is sorted): its usable rows first, by value.  One argsort of a single
-    # key, each edge's values shifted into a band of its own and the unusable rows past them,
-    # is ~20x faster than a three-key lexsort; the values are grey levels, so the shift costs
-    # at most ~1e-10 of a grey level of resolution (ties that close may swap)
-    use = ok & np.isfinite(v)      # NaN only on edges without a median (fewer than MIN_ROWS rows)
-    k = np.where(use, v, 0.0)
-    lo = float(k.min())
-    span = float(k.max()) - lo + 1.0
-    order = np.argsort(np.where(use, k - lo, span) + edge_of * (2.0 * span), kind="stable")
-    m = v[order[np.clip(start + np.maximum(cnt - 1, 0) // 2, 0, R - 1)]]
-    return np.where(cnt >= MIN_ROWS, m, np.nan)
-
-
 def _odd_rows(edge_of: np.ndarray, v_dark: np.ndarray, v_bright: np.ndarray, ok: np.ndarray,
               n_edges: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each edge's median dark and bright samples (over its rows with both in the image; NaN for
@@ -479,7 +360,25 @@ def _odd_rows(edge_of: np.ndarray, v_dark: np.ndarray, v_bright: np.ndarray, ok:
     that is more: something in front of the tag (or a stain, a shadow's edge) crosses the edge
     there."""
     R = len(edge_of)
-    median = lambda v: _edge_medians(edge_of, v, ok, n_edges)  # noqa: E731
+    cnt = np.bincount(edge_of, ok, n_edges).astype(np.int64)
+    rows = np.bincount(edge_of, minlength=n_edges)
+    start = np.cumsum(rows) - rows
+
+    def median(v: np.ndarray) -> np.ndarray:
+        if R == 0:
+            return np.full(n_edges, np.nan)
+        # per edge (edge_of is sorted): its usable rows first, by value.  One argsort of a single
+        # key, each edge's values shifted into a band of its own and the unusable rows past them,
+        # is ~20x faster than a three-key lexsort; the values are grey levels, so the shift costs
+        # at most ~1e-10 of a grey level of resolution (ties that close may swap)
+        use = ok & np.isfinite(v)      # NaN only on edges without a median (fewer than MIN_ROWS rows)
+        k = np.where(use, v, 0.0)
+        lo = float(k.min())
+        span = float(k.max()) - lo + 1.0
+        order = np.argsort(np.where(use, k - lo, span) + edge_of * (2.0 * span), kind="stable")
+        m = v[order[np.clip(start + np.maximum(cnt - 1, 0) // 2, 0, R - 1)]]
+        return np.where(cnt >= MIN_ROWS, m, np.nan)
+
     dark_m, bright_m = median(v_dark), median(v_bright)
     if R == 0:
         return dark_m, bright_m, np.zeros(0, bool)
