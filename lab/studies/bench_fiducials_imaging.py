@@ -76,7 +76,7 @@ def _sightings(condition: dict[str, Any], frames: int, seed: int) -> list[dict[s
         img = render_tags(cam.K, cam.dist, cam.width_px, cam.height_px,
                           [(t, world.printed_size_m(t), p) for t, p, _ in placed], blur_sigma_px=cam.blur_px,
                           noise_sigma=cam.pixel_noise, rng=np.random.default_rng(noise.integers(2**62)),
-                          defocus=cam.defocus(), looks=world._looks or None, gain=world.gain_map(),
+                          defocus=cam.defocus(), looks={t: world.tag_look(t) for t, _, _ in placed}, gain=world.gain_map(),
                           full_well_e=cam.imaging.full_well_e)
         if cam.jpeg_quality > 0:
             buf, _ = encode_frame(img, cam.jpeg_quality)
