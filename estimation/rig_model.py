@@ -253,6 +253,35 @@ def radial_basis(corners_px: np.ndarray, K: np.ndarray) -> np.ndarray:
     return G
 
 
+# the step of `intrinsics_basis_many`'s central differences (px): the undistortion is smooth in K,
+# and at this step the difference's round-off (cv2's iteration to ~1e-10 px over 2e-2 px) and its
+# truncation (third derivatives over ~1e4 px of K) are both far below a micro-pixel per px
+_K_STEP_PX = 0.01
+
+
+def intrinsics_basis_many(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(n, 8, 5): how each tag's corners as `undistort_px` gives them (raw (n, 4, 2) through K and
+    `dist`) move per unit of the intrinsics (fx, fy, s, u0, v0), by central differences.  A graph
+    whose intrinsics are a variable reads the corners it was given, undistorted through the
+    survey's K, as if undistorted through its own estimate: to first order they are the corners
+    plus this basis times the difference (`corner_factor`'s `intrinsics_basis`).  Without it, the
+    distortion removed through the survey's K stays in every corner however far the estimate moves,
+    the same way in every sighting: a spring back to the survey's intrinsics that the graph grows
+    surer of with every view (docs/sf_graphslam.md, "The intrinsics")."""
+    raw = np.asarray(corners_px, float).reshape(-1, 2)
+    K = np.asarray(K, float)
+    out = np.zeros((len(raw) // 4, 8, 5))
+    # fx, fy, u0, v0 in K; the skew's column stays zero: OpenCV normalises without it and puts it
+    # back only in the output pinhole, so its difference would be the skew's whole pinhole term
+    # and cancel the factor's own, where the skew is a (zero) property of the pinhole alone
+    for j, (r, c) in ((0, (0, 0)), (1, (1, 1)), (3, (0, 2)), (4, (1, 2))):
+        lo, hi = K.copy(), K.copy()
+        lo[r, c] -= _K_STEP_PX
+        hi[r, c] += _K_STEP_PX
+        out[:, :, j] = ((undistort_px(raw, hi, dist) - undistort_px(raw, lo, dist)) / (2 * _K_STEP_PX)).reshape(-1, 8)
+    return out
+
+
 def radial_basis_many(corners_px: np.ndarray, K: np.ndarray) -> np.ndarray:
     """`radial_basis` of many tags' corners at once: (n, 4, 2) -> (n, 8, 2), the same numbers."""
     u = np.asarray(corners_px, float).reshape(-1, 4, 2)
@@ -325,7 +354,8 @@ def project_corners(world_T_camera: Pose3, world_T_tag: Pose3, local: np.ndarray
 def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_corners_m: np.ndarray,
                   sigma_px: float, intrinsics_key: int = INTRINSICS,
                   robust_k: float | None = 3.0, fixed: gtsam.Cal3_S2 | None = None,
-                  scale_key: int | None = None, distortion: tuple[int, np.ndarray] | None = None) -> gtsam.CustomFactor:
+                  scale_key: int | None = None, distortion: tuple[int, np.ndarray] | None = None,
+                  intrinsics_basis: tuple[np.ndarray, np.ndarray] | None = None) -> gtsam.CustomFactor:
     """Reprojection error (8-vector, px) of a tag's four corners.  `corners_px`: (4, 2)
     undistorted measurements in pixels of the nominal pinhole; `tag_corners_m`: (4, 3) the
     corners in the tag frame, in the same order.  With `fixed` intrinsics the factor is on the
@@ -333,8 +363,13 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     `scale_key` the tag as printed is (1 + s) times its nominal size, s a 1-vector variable (a
     printer's scale error moves a tag seen from one side along the line of sight by s x distance).
     With `distortion` = (key, radial_basis(corners)) the measured corners are corrected by the
-    lens's radial distortion error, a 2-vector variable shared by every sighting."""
+    lens's radial distortion error, a 2-vector variable shared by every sighting.  With
+    `intrinsics_basis` = (B, K_ref) (variable intrinsics only: `intrinsics_basis_many`) the
+    corners were undistorted through K_ref, and move by B (K - K_ref) with the intrinsics K: the
+    lens's distortion acts on normalised coordinates, which the intrinsics define."""
     meas = np.asarray(corners_px, dtype=float).reshape(4, 2)
+    if intrinsics_basis is not None and fixed is not None:
+        raise ValueError("an intrinsics basis needs the intrinsics as a variable (fixed= was given)")
     local = np.asarray(tag_corners_m, dtype=float).reshape(4, 3)
     noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(8, sigma_px)
     if robust_k:
@@ -343,7 +378,7 @@ def corner_factor(camera_key: int, tag_key: int, corners_px: np.ndarray, tag_cor
     lens_basis = None if distortion is None else np.asarray(distortion[1], float)
 
     error = _corner_error(camera_key, tag_key, None if fixed is not None else intrinsics_key, meas, local, fixed_K,
-                          scale_key, None if distortion is None else (distortion[0], lens_basis))
+                          scale_key, None if distortion is None else (distortion[0], lens_basis), intrinsics_basis)
     keys = [camera_key, tag_key] if fixed is not None else [camera_key, tag_key, intrinsics_key]
     if scale_key is not None:
         keys.append(scale_key)
@@ -580,7 +615,8 @@ def _huber(k: float) -> gtsam.noiseModel.mEstimator.Base:
 
 
 def _corner_error(camera_key: int, tag_key: int, intrinsics_key: int | None, meas: np.ndarray, local: np.ndarray,
-                  cal: np.ndarray | None, scale_key: int | None, lens: tuple[int, np.ndarray] | None):
+                  cal: np.ndarray | None, scale_key: int | None, lens: tuple[int, np.ndarray] | None,
+                  intrinsics_basis: tuple[np.ndarray, np.ndarray] | None = None):
     """The corner factor's error function: with the intrinsics fixed at `cal` (a study's graph, a
     run's without a survey prior) or read from the variable `intrinsics_key` (the rig survey, and a
     calibrated run's graph and its bound: `SfGraphSlam.free_intrinsics`), the same error and
@@ -588,8 +624,11 @@ def _corner_error(camera_key: int, tag_key: int, intrinsics_key: int | None, mea
     calls it back once per corner factor per relinearisation; in numpy the fixed cost per call on
     4-row arrays, not the arithmetic, was what such a callback spent its time on (32 us a
     linearisation, 10 of them the callback and its reads of the values).  A corner behind the
-    camera takes `project_corners`'s path (a large flat error and no gradient)."""
+    camera takes `project_corners`'s path (a large flat error and no gradient).  The intrinsics
+    basis (`corner_factor`), where given, is applied after either: e - B (K - K_ref), JK - B."""
     lens_key = None if lens is None else lens[0]
+    k_basis, k_ref = ((None, None) if intrinsics_basis is None else
+                      (np.asarray(intrinsics_basis[0], float).reshape(8, 5), np.asarray(intrinsics_basis[1], float)))
     minus_basis = None if lens is None else -np.asarray(lens[1], float)
     constants = corner_kernel.pack(meas, local, minus_basis)
     kernel = corner_kernel.corner_error
@@ -613,6 +652,10 @@ def _corner_error(camera_key: int, tag_key: int, intrinsics_key: int | None, mea
                 e = e + minus_basis @ d
             if want:
                 Js = (JT[:, 3:] * local.repeat(2, axis=0)).sum(axis=1)[:, None]
+        if k_basis is not None:
+            e = e - k_basis @ (K - k_ref)
+            if want:
+                JK = JK - k_basis
         if want:
             jacobians[0], jacobians[1] = JC, JT
             j = 2

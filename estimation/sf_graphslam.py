@@ -42,7 +42,8 @@ from estimation.corner_noise import AbsoluteResiduals, CornerNoise
 from estimation.fiducials import Detection, tag_object_points
 from estimation import corner_kernel, levenberg_marquardt
 from estimation.rig_model import (GAUGE_SIGMA, AXIS, BASE, DISTORTION, INTRINSICS, LIFT, MIN_SIDE_RATIO, MOUNT, OBLIQUE_EXPONENT, RigGeometry, ViewMotion, cal3_s2,
-                                  CornerSighting, chain_factor, corner_factor, distortion_prior_sigmas, radial_basis_many, refine_tag_pose, tag_prior_noise,
+                                  CornerSighting, chain_factor, corner_factor, distortion_prior_sigmas, intrinsics_basis_many, radial_basis_many,
+                                  refine_tag_pose, tag_prior_noise,
                                   undistort_px)
 from estimation.semantics import DeployCheck, deployable_check
 from estimation.view_batch import TAGS_PER_FACTOR, BatchCost, ViewBatch
@@ -187,6 +188,11 @@ class SfGraphSlam:
         # (docs/sf_graphslam.md, "The intrinsics").
         self.free_intrinsics = (rig is not None and calibration is not None and calibration.joint_covariance is not None
                                 and self.config.observation == "corners" and camera is not None)
+        # the intrinsics the corners are undistorted through (fx, fy, s, u0, v0): with them a
+        # variable, each corner factor reads its corners as undistorted through the estimate instead
+        # (`rig_model.intrinsics_basis_many`)
+        self._k_ref = (np.array([camera[0][0, 0], camera[0][1, 1], camera[0][0, 1], camera[0][0, 2], camera[0][1, 2]],
+                                float) if camera is not None else None)
         c = self.config
         self.camera_noise = gtsam.noiseModel.Diagonal.Sigmas(
             np.array([c.camera_sigma_rad] * 3 + [c.camera_sigma_m] * 3))
@@ -427,6 +433,10 @@ class SfGraphSlam:
             top = sides.max(axis=1)
             ratios = np.where(top > 0, sides.min(axis=1) / np.where(top > 0, top, 1.0), 0.0)
             bases = radial_basis_many(undistorted, K) if c.observation == "corners" and self.rig is not None else None
+            # the intrinsics a variable: the corners move with them (`intrinsics_basis_many`)
+            k_bases = (intrinsics_basis_many(np.concatenate([np.asarray(d.corners_px, float).reshape(4, 2)
+                                                             for d in detections]), *self.camera)
+                       if c.observation == "corners" and self.free_intrinsics else None)
         ck = C(k)
         corners = c.observation == "corners"
         scales = corners and c.tag_scale_sigma > 0
@@ -455,13 +465,15 @@ class SfGraphSlam:
             spec = ("corners", ck, tk, d.size_m, scale, sk, lens)
             if corners:
                 local = _tag_points(d.size_m)
+                k_basis = None if k_bases is None else (k_bases[i], self._k_ref)
                 self._add(corner_factor(ck, tk, u, local, c.corner_sigma_px * scale, robust_k=robust_k,
                                         fixed=None if self.free_intrinsics else self._cal, scale_key=sk,
-                                        distortion=lens), spec)
+                                        distortion=lens, intrinsics_basis=k_basis), spec)
                 # what the factor is built from, kept: the residual pass reads it, and the batch
                 # solve builds one factor a view from it (`_batch_graph`)
                 self._corner_factors.append((self.graph.size() - 1, scale, ck, tk, sk, u, local,
-                                             None if lens is None else lens[1], c.corner_sigma_px * scale, robust_k))
+                                             None if lens is None else lens[1], c.corner_sigma_px * scale, robust_k,
+                                             None if k_bases is None else k_bases[i]))
             else:
                 if c.observation == "corner-info":
                     gauss = self._corner_information(d, c.corner_sigma_px * scale)
@@ -906,6 +918,9 @@ class SfGraphSlam:
             lensed = [i for i, f in enumerate(todo) if f[7] is not None]
             if lensed:
                 e[lensed] -= np.array([todo[i][7] for i in lensed]) @ self._vector(DISTORTION)
+            moved = [i for i, f in enumerate(todo) if f[10] is not None]
+            if moved:
+                e[moved] -= np.array([todo[i][10] for i in moved]) @ (np.asarray(cal.vector(), float) - self._k_ref)
             scales = np.array([f[1] for f in todo])
             face_on = (e / scales[:, None]).ravel()
             self._face_on.append(face_on)
@@ -978,7 +993,7 @@ class SfGraphSlam:
                 self._batch.add(other)
                 self._batch_others.add(other)
                 continue
-            _, _, ck, tk, sk, u, local, basis, sigma, robust_k = f
+            _, _, ck, tk, sk, u, local, basis, sigma, robust_k, _ = f
             views.setdefault((ck, basis is not None, robust_k), []).append(CornerSighting(tk, sk, u, local, sigma, basis))
         assert self._view_batch is not None
         for (ck, lensed, robust_k), sightings in views.items():

@@ -104,3 +104,66 @@ def test_a_variable_of_a_kind_without_a_relinearisation_threshold_is_refused():
     slam = SfGraphSlam(MODEL, SlamConfig(observation="corners"), camera=(K, np.zeros(5)))
     with pytest.raises(ValueError, match="relinearisation threshold"):
         slam._value(gtsam.symbol("x", 0), Pose3())
+
+
+def _distorted(points: np.ndarray, K_true: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Pixels of normalised `points` (n, 2) through a lens `dist` and the pinhole `K_true`."""
+    import cv2
+
+    p3 = np.column_stack([points, np.ones(len(points))])
+    px, _ = cv2.projectPoints(p3, np.zeros(3), np.zeros(3), K_true, dist)
+    return px.reshape(-1, 2)
+
+
+def test_corners_undistorted_through_the_survey_move_with_the_intrinsics_as_undistorting_through_them_would():
+    # A tag near the frame's corner through the sim's lens (k1 = -0.05: ~20 px of distortion
+    # there), undistorted through a survey's K.  Read through intrinsics 0.5-1 px away, the basis
+    # gives the corners undistortion through those gives, to a hundredth of what it corrects.
+    from estimation.rig_model import intrinsics_basis_many, undistort_px
+
+    dist = np.array([-0.05, 0.01, 0.0, 0.0, 0.0])
+    norm = np.array([[-0.62, -0.33], [-0.57, -0.33], [-0.57, -0.28], [-0.62, -0.28]])
+    raw = _distorted(norm, TRUE_K, dist)
+    B = intrinsics_basis_many(raw[None], K, dist)[0]
+    K2 = K + np.array([[0.8, 0.0, -0.6], [0.0, -1.0, 0.7], [0.0, 0.0, 0.0]])
+    delta = np.array([0.8, -1.0, 0.0, -0.6, 0.7])               # fx, fy, s, u0, v0
+    moved = undistort_px(raw, K2, dist).ravel() - undistort_px(raw, K, dist).ravel()
+    predicted = B @ delta
+    assert np.abs(predicted).max() > 0.01                     # the distortion's share is not nothing
+    # to first order (OpenCV's undistortion iterates to ~1e-4 px near the frame's corner)
+    assert np.abs(moved - predicted).max() < 0.01 * np.abs(moved).max()
+
+
+def test_a_corner_factor_with_the_intrinsics_basis_reads_its_corners_through_the_estimate():
+    # The factor's error and its Jacobian on the intrinsics, against the exact model: the pinhole
+    # prediction less the raw corners undistorted through the intrinsics being evaluated.
+    from estimation.rig_model import INTRINSICS as KEY, cal3_s2, corner_factor, intrinsics_basis_many, undistort_px
+    from estimation.fiducials import tag_object_points
+
+    dist = np.array([-0.05, 0.01, 0.0, 0.0, 0.0])
+    cam, tag = gtsam.symbol("c", 0), gtsam.symbol("t", 0)
+    camera = Pose3()
+    T = Pose3(gtsam.Rot3.Rx(np.pi + 0.2), np.array([-1.3, -0.7, 2.2]))
+    local = tag_object_points(0.1)
+    pin = np.array([(T.transformFrom(p)[:2] / T.transformFrom(p)[2]) for p in local])
+    raw = _distorted(pin, TRUE_K, dist)
+    u = undistort_px(raw, K, dist)
+    k_ref = np.array([K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]])
+    f = corner_factor(cam, tag, u, local, 0.1, robust_k=None, intrinsics_basis=(intrinsics_basis_many(raw[None], K, dist)[0], k_ref))
+    v = gtsam.Values()
+    v.insert(cam, camera)
+    v.insert(tag, T)
+
+    def exact(kvec: np.ndarray) -> np.ndarray:
+        Kx = np.array([[kvec[0], kvec[2], kvec[3]], [0.0, kvec[1], kvec[4]], [0.0, 0.0, 1.0]])
+        return ((Kx[:2, :2] @ pin.T).T + Kx[:2, 2] - undistort_px(raw, Kx, dist)).ravel()
+
+    kv = k_ref + np.array([0.9, 0.9, 0.0, 0.4, -0.6])
+    v.insert(KEY, cal3_s2(np.array([[kv[0], kv[2], kv[3]], [0.0, kv[1], kv[4]], [0.0, 0.0, 1.0]])))
+    e = f.unwhitenedError(v)
+    assert np.abs(e - exact(kv)).max() < 1e-4
+    # the skew is left out: the basis holds it a property of the pinhole alone (OpenCV normalises
+    # without it), so its column is the pinhole's, not the exact model's
+    J = f.linearize(v).jacobian()[0][:, 12:17] * 0.1         # whitened by the sigma: back to px
+    num = np.column_stack([(exact(kv + h) - exact(kv - h)) / 2e-3 for h in np.eye(5)[[0, 1, 3, 4]] * 1e-3])
+    assert np.abs(J[:, [0, 1, 3, 4]] - num).max() < 1e-3
