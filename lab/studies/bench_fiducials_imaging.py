@@ -19,7 +19,10 @@ same poses and noise draws in every condition.  Metrics:
   inner half and outer half (normalised radius under / over 0.4): a field the graph can read as a
   focal length;
 - `focal`: its least-squares slope on the normalised radius (px: the focal length change the field
-  mimics) with its standard error.
+  mimics) with its standard error;
+- `size near / far`: the mean error along each corner's direction from its tag's centre, over the
+  tag's mean side (relative, 1e-4): a tag read large or small the same way at a distance, which a
+  tag's print-scale variable cannot take up across views at different distances.
 """
 
 from __future__ import annotations
@@ -107,10 +110,16 @@ def metrics(sightings: list[dict[str, Any]], K) -> dict[str, Any]:
     resid = y - (slope or 0.0) * x
     se = float(np.sqrt(np.sum(resid ** 2) / max(len(x) - 1, 1) / np.sum(x * x))) if x.size else None
     inner, outer = rn < 0.4, rn >= 0.4
+    centre = T.mean(axis=1, keepdims=True)
+    radial = T - centre
+    radial /= np.linalg.norm(radial, axis=2, keepdims=True)
+    side = np.linalg.norm(np.roll(T, -1, axis=1) - T, axis=2).mean(axis=1)
+    size = np.sum(E * radial, axis=2).mean(axis=1) / side
+    size_se = lambda m: (float(np.mean(size[m])), float(np.std(size[m]) / math.sqrt(max(m.sum(), 1))))  # noqa: E731
     mean_se = lambda m: (float(np.mean(out_err[m])), float(np.std(out_err[m]) / math.sqrt(max(m.sum(), 1))))  # noqa: E731
     return {"sightings": len(sightings), "rms_px": rms(E), "rms_near_px": rms(E[near]), "rms_far_px": rms(E[far]),
             "outward_inner_px": mean_se(inner), "outward_outer_px": mean_se(outer),
-            "focal_px": slope, "focal_se_px": se}
+            "focal_px": slope, "focal_se_px": se, "size_near": size_se(near), "size_far": size_se(far)}
 
 
 def imaging_study(frames: int, seed: int) -> dict[str, Any]:
@@ -131,11 +140,13 @@ def markdown(res: dict[str, Any]) -> list[str]:
              f"at {res['distance_m'][0]:g}-{res['distance_m'][1]:g} m, up to 60 deg off their normal; the same poses "
              "and noise in every condition). outward: the mean error away from the principal point in the frame's "
              "inner and outer half; focal: the focal-length change that field mimics (slope on the normalised radius).",
-             "", "| condition | sightings | rms | near / far | outward inner | outward outer | focal |",
-             "|---|---|---|---|---|---|---|"]
+             " size: the tag read large (+) or small, relative, near / far.",
+             "", "| condition | sightings | rms | near / far | outward inner | outward outer | focal | size near / far (1e-4) |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
         fmt = lambda v: f"{v[0]:+.4f} ± {v[1]:.4f}"  # noqa: E731
         lines.append(f"| {r['condition']} | {r['sightings']} | {r['rms_px']:.4f} | {r['rms_near_px']:.4f} / "
                      f"{r['rms_far_px']:.4f} | {fmt(r['outward_inner_px'])} | {fmt(r['outward_outer_px'])} | "
-                     f"{r['focal_px']:+.4f} ± {r['focal_se_px']:.4f} |")
+                     f"{r['focal_px']:+.4f} ± {r['focal_se_px']:.4f} | {r['size_near'][0] * 1e4:+.2f} ± "
+                     f"{r['size_near'][1] * 1e4:.2f} / {r['size_far'][0] * 1e4:+.2f} ± {r['size_far'][1] * 1e4:.2f} |")
     return lines
