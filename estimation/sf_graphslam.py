@@ -191,8 +191,7 @@ class SfGraphSlam:
         # the intrinsics the corners are undistorted through (fx, fy, s, u0, v0): with them a
         # variable, each corner factor reads its corners as undistorted through the estimate instead
         # (`rig_model.intrinsics_basis_many`)
-        self._k_ref = (np.array([camera[0][0, 0], camera[0][1, 1], camera[0][0, 1], camera[0][0, 2], camera[0][1, 2]],
-                                float) if camera is not None else None)
+        self._k_ref = np.asarray(cal3_s2(camera[0]).vector(), float) if camera is not None else None
         c = self.config
         self.camera_noise = gtsam.noiseModel.Diagonal.Sigmas(
             np.array([c.camera_sigma_rad] * 3 + [c.camera_sigma_m] * 3))
@@ -426,16 +425,15 @@ class SfGraphSlam:
             # the view's corners undistorted, their obliquity and their lens basis in one pass each
             # (the same numbers as one tag at a time: undistort_px, undistorted_side_ratio, radial_basis)
             K = self.camera[0]
-            undistorted = undistort_px(np.concatenate([np.asarray(d.corners_px, float).reshape(4, 2)
-                                                       for d in detections]), *self.camera).reshape(-1, 4, 2)
+            raw = np.concatenate([np.asarray(d.corners_px, float).reshape(4, 2) for d in detections])
+            undistorted = undistort_px(raw, *self.camera).reshape(-1, 4, 2)
             edges = np.roll(undistorted, -1, axis=1) - undistorted
             sides = np.sqrt(np.einsum("nij,nij->ni", edges, edges))
             top = sides.max(axis=1)
             ratios = np.where(top > 0, sides.min(axis=1) / np.where(top > 0, top, 1.0), 0.0)
             bases = radial_basis_many(undistorted, K) if c.observation == "corners" and self.rig is not None else None
             # the intrinsics a variable: the corners move with them (`intrinsics_basis_many`)
-            k_bases = (intrinsics_basis_many(np.concatenate([np.asarray(d.corners_px, float).reshape(4, 2)
-                                                             for d in detections]), *self.camera)
+            k_bases = (intrinsics_basis_many(raw, *self.camera)
                        if c.observation == "corners" and self.free_intrinsics else None)
         ck = C(k)
         corners = c.observation == "corners"

@@ -75,11 +75,12 @@ def test_a_view_label_names_the_lift_only_when_it_is_used():
     assert View(0.5, pose, 1.0).label.endswith(", lift +1000 mm")
 
 
-def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> list[int]:
+def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> tuple[list[int], dict[int, float]]:
     """The documented rules, one tag at a time: near enough, facing the camera within the view
     angle, all corners in front and inside the image by the margin, sides long enough to decode;
     nearest first, hidden when nearer tags' boxes cover more than the overlap fraction of it; seen
-    only when its image is no flatter than `min_side_ratio` (a flatter one still hides others)."""
+    only when its image is no flatter than `min_side_ratio` (a flatter one still hides others).
+    Also each readable tag's depth (its corners' mean, the order `visible` reports)."""
     c = p.config
     s_T_c = p.structure_T_camera(view)
     c_T_s = s_T_c.inverse().matrix()
@@ -118,7 +119,7 @@ def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> lis
         flat = sides.min() < c.min_side_ratio * sides.max()
         if covered <= c.occlusion_overlap * np.prod(hi - lo) and not crossed and not flat:
             seen.append(tid)
-    return seen
+    return seen, {tid: depth for depth, tid, *_ in boxes}
 
 
 @pytest.mark.parametrize("n", [3, 4])
@@ -129,21 +130,8 @@ def test_visibility_follows_the_rules_tag_by_tag(n):
     for k in rng.choice(len(p.candidates), 40, replace=False):
         view = p.candidates[int(k)]
         present = [t for t in everything if rng.random() < 0.7]
-        got, want = p.visible(view, present), _visible_one_by_one(p, view, present)
+        got, (want, depth) = p.visible(view, present), _visible_one_by_one(p, view, present)
         # the same tags, nearest first; tags at the same depth to round-off (placed symmetrically)
         # may come in either order
         assert sorted(got) == sorted(want)
-        depth = _depths(p, view, got)
         assert all(depth[a] <= depth[b] + 1e-9 for a, b in zip(got, got[1:])), (got, want)
-
-
-def _depths(p: SurveyPlanner, view: View, tags: list[int]) -> dict[int, float]:
-    """Each tag's mean corner depth in the camera of `view` (the order `visible` reports)."""
-    c_T_s = p.structure_T_camera(view).inverse().matrix()
-    out = {}
-    for tid in tags:
-        tag = p.model.tags[tid]
-        corners = [tag.structure_T_tag.transformFrom(np.array([x, y, 0.0]) * tag.size_m / 2)
-                   for x, y in ((-1, 1), (1, 1), (1, -1), (-1, -1))]
-        out[tid] = float(np.mean([(c_T_s[:3, :3] @ q + c_T_s[:3, 3])[2] for q in corners]))
-    return out

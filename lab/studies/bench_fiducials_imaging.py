@@ -66,16 +66,17 @@ def _sightings(condition: dict[str, Any], frames: int, seed: int) -> list[dict[s
     out = []
     for _ in range(frames):
         placed: list[tuple[int, Any, float]] = []
+        centres: list[np.ndarray] = []
         for t in rng.choice(ids, TAGS_PER_FRAME, replace=False):
             d = rng.uniform(*DISTANCE_M)
             size = world.borg.model.tags[int(t)].size_m
             while True:          # tags apart in the frame, so none hides another
                 pose, _ = random_tag_pose(rng, cam.K, cam.width_px, cam.height_px, d, size)
                 c = tag_corners_px(cam.K, pose, size, cam.dist).mean(axis=0)
-                if all(np.linalg.norm(c - tag_corners_px(cam.K, p, size, cam.dist).mean(axis=0)) > MIN_APART_PX
-                       for _, p, _ in placed):
+                if all(np.linalg.norm(c - other) > MIN_APART_PX for other in centres):
                     break
             placed.append((int(t), pose, d))
+            centres.append(c)
         img = render_tags(cam.K, cam.dist, cam.width_px, cam.height_px,
                           [(t, world.printed_size_m(t), p) for t, p, _ in placed], blur_sigma_px=cam.blur_px,
                           noise_sigma=cam.pixel_noise, rng=np.random.default_rng(noise.integers(2**62)),
@@ -123,12 +124,9 @@ def metrics(sightings: list[dict[str, Any]], K) -> dict[str, Any]:
 
 
 def imaging_study(frames: int, seed: int) -> dict[str, Any]:
-    import numpy as np
+    from lab.studies.fiducial_scenes import _camera
 
-    from lab.core.config import load_rig
-
-    c = load_rig().sim.camera
-    K = np.array([[c["fx_px"], 0.0, c["cx_px"]], [0.0, c["fy_px"], c["cy_px"]], [0.0, 0.0, 1.0]])
+    K = _camera()[0]          # the sim rig's lens as its file states it: the principal point the field is about
     rows = []
     for name, cond in CONDITIONS.items():
         rows.append({"condition": name, **metrics(_sightings(cond, frames, seed), K)})
