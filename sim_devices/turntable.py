@@ -39,6 +39,9 @@ class TurntableSim(AxisController):
             self.stop_motion()
 
     def stop_motion(self) -> None:
+        # A homing run that already ended counts, whether or not anyone asked STATUS? since: a
+        # real controller latches its home when the motion ends, not when it is polled.
+        self.is_moving()
         self.axis.stop()
         self.homing = False
 

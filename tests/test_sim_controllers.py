@@ -44,3 +44,23 @@ def test_single_axis_controllers_speak_their_own_units_through_one_skeleton():
     assert lift.handle("MOVE 500") == "OK" and lift.handle("STATUS?").startswith("OK state=MOVING")
     lift.link_lost()
     assert lift.handle("STATUS?") == "OK state=IDLE pos_mm=0.000 target_mm=0.000 fault=none"
+
+
+def test_a_homing_run_that_ended_unpolled_survives_its_host_leaving():
+    # The table latches its home when the motion ends; a host that drops the link after that,
+    # without having asked STATUS?, must not leave it un-homed (the CI flake of stop 49).
+    t = [0.0]
+    table = TurntableSim(Axis(0.5, np.radians(30.0), 0.1, lambda: t[0]), -360.0, 360.0)
+    assert table.handle("HOME") == "OK"
+    t[0] = 10.0                      # travel and settling long over; nobody polled
+    table.link_lost()
+    assert table.homed and table.handle("MOVE 10") == "OK"
+
+
+def test_a_host_that_leaves_mid_homing_leaves_the_table_unhomed():
+    t = [0.0]
+    table = TurntableSim(Axis(0.5, np.radians(30.0), 0.1, lambda: t[0]), -360.0, 360.0)
+    assert table.handle("HOME") == "OK"
+    t[0] = 0.5                       # still turning
+    table.link_lost()
+    assert not table.homed and table.handle("MOVE 10").startswith("ERR 30")
