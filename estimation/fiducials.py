@@ -190,21 +190,30 @@ HIDDEN_MIN_OVERLAP_CELLS2 = 0.25     # an overlap smaller than this (in the fart
 
 def partly_hidden(corners: Sequence[np.ndarray], distances: Sequence[float], quiet_cells: float,
                   margin_cells: float) -> set[int]:
-    """Indices of the tags a nearer one covers: its outer edge (black square grown by
-    `quiet_cells`) overlaps their black square grown by `margin_cells` by more than
-    `HIDDEN_MIN_OVERLAP_CELLS2` of their cells (a nearer tag grazing a corner of that band, 0.04
-    of a cell, left the corners unbiased to 0.002 px on a noise-free render).  Two tags on one
-    flat surface never overlap in an image, so an overlap means one stands in front of the other;
-    the farther (by its centre's distance) is the hidden one."""
+    """Indices of the tags a nearer one covers (`hidden_behind`'s keys)."""
+    return set(hidden_behind(corners, distances, quiet_cells, margin_cells))
+
+
+def hidden_behind(corners: Sequence[np.ndarray], distances: Sequence[float], quiet_cells: float,
+                  margin_cells: float) -> dict[int, int]:
+    """Each tag a nearer one covers -> a tag that covers it (indices into `corners`): the nearer
+    tag's outer edge (black square grown by `quiet_cells`) overlaps the other's black square grown
+    by `margin_cells` by more than `HIDDEN_MIN_OVERLAP_CELLS2` of its cells (a nearer tag grazing
+    a corner of that band, 0.04 of a cell, left the corners unbiased to 0.002 px on a noise-free
+    render).  Tags on one flat surface, as designed, never overlap in an image, so an overlap
+    means one stands in front of the other; the farther by its centre's distance is taken to be
+    behind.  Not always so: a misplaced module can push its tag's card over a neighbour's on the
+    same face, and which card is on top is then decided where they meet, by millimetres one
+    view's poses cannot resolve (docs/fiducials.md, "Tags hiding tags")."""
     n = len(corners)
     if n < 2:
-        return set()
+        return {}
     outer = [grown_quad(c, quiet_cells).astype(np.float32) for c in corners]
     inner = [grown_quad(c, margin_cells).astype(np.float32) for c in corners]
     cell_area = [abs(cv2.contourArea(np.asarray(c, dtype=np.float32).reshape(4, 2))) / 64.0 for c in corners]
     lo = np.array([o.min(axis=0) for o in outer])
     hi = np.array([o.max(axis=0) for o in outer])
-    out: set[int] = set()
+    out: dict[int, int] = {}
     for i in range(n):
         for j in range(n):
             if i == j or distances[j] >= distances[i]:
@@ -213,7 +222,7 @@ def partly_hidden(corners: Sequence[np.ndarray], distances: Sequence[float], qui
                 continue            # boxes apart: nothing to intersect
             area, _ = cv2.intersectConvexConvex(outer[j], inner[i])
             if area > HIDDEN_MIN_OVERLAP_CELLS2 * cell_area[i]:
-                out.add(i)
+                out[i] = j
                 break
     return out
 
@@ -248,19 +257,27 @@ class TagDetector:
                predict: Callable[[int], Pose3 | None] | None = None) -> list[Detection]:
         """Tags in `image` (BGR or grey).  `predict(tag_id)` may return the expected camera_T_tag
         (from the design and the camera's kinematics) to settle ambiguous poses."""
+        return self.detect_with_hidden(image, predict)[0]
+
+    def detect_with_hidden(self, image: np.ndarray, predict: Callable[[int], Pose3 | None] | None = None
+                           ) -> tuple[list[Detection], dict[int, int]]:
+        """`detect`, and the tags read but dropped as partly behind another (`hidden_behind`): tag
+        id -> the id of a tag in front of it (what a run says of a tag it could not use)."""
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         out: list[Detection] = []
         for tid, c in zip(*self.find(grey)):
             det = self._pose(tid, c, predict)
             if det is not None:
                 out.append(det)
+        behind: dict[int, int] = {}
         if self.config.hidden_margin_cells is not None:
-            hidden = partly_hidden([d.corners_px for d in out],
+            hidden = hidden_behind([d.corners_px for d in out],
                                    [float(np.linalg.norm(d.camera_T_tag.translation())) for d in out],
                                    1.0 if self.config.quiet_zone else 0.0, self.config.hidden_margin_cells)
+            behind = {out[i].tag_id: out[j].tag_id for i, j in hidden.items()}
             out = [d for i, d in enumerate(out) if i not in hidden]
         out.sort(key=lambda d: d.tag_id)
-        return out
+        return out, behind
 
     def find(self, grey: np.ndarray) -> tuple[list[int], np.ndarray]:
         """Our tags' ids and refined corners (N, 4, 2) in a grey image, every check passed, before

@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections import Counter
 from dataclasses import replace
 from functools import cached_property
 from typing import Any, Callable
@@ -532,6 +533,7 @@ class BorgProcedure:
                 what = ", ".join(f"tag {t} seen in {self._sightings(name, t)} of {len(taken)} view(s)"
                                  + (", all from one turntable angle" if self._sightings(name, t)
                                     and self._directions_short(name, t, plan) else "")
+                                 + self._behind_note(name, t)
                                  for t in missing)
                 if replan.views:
                     replans.append(f"{what}; {len(replan.views)} more planned from the calibrated rig and the "
@@ -565,7 +567,8 @@ class BorgProcedure:
             result = replace(result, reason=f"{result.reason}; {note}" if result.reason else note)
         if replans:
             still = self._missing_tags(name, result, self.surveys[name])
-            outcome = (f"tag {', '.join(map(str, still))} still short of views" if still
+            outcome = (f"tag {', '.join(map(str, still))} still short of views"
+                       + "".join(self._behind_note(name, t) for t in still) if still
                        else "every tag of it measured")
             note = f"re-planned: {'; '.join(replans)}; {outcome} after {len(taken)} view(s)"
             result = replace(result, reason=f"{result.reason}; {note}" if result.reason else note)
@@ -708,6 +711,9 @@ class BorgProcedure:
                 camera = self.measure.slam.camera
                 return camera is None or side_ratio(np.asarray(d["corners_px"], float), *camera) >= MIN_SIDE_RATIO
         return False
+
+    def _behind_note(self, name: str, tag: int) -> str:
+        return behind_note(self._step_views(name), tag, {t: spec.module for t, spec in self.model.tags.items()})
 
     def _step_views(self, name: str) -> list[dict[str, Any]]:
         """The views of this step's current attempt, every round."""
@@ -909,12 +915,14 @@ class BorgProcedure:
         structure_T_camera = world_T_structure.inverse().compose(world_T_camera)
         rec.log_transform("world", "structure", world_T_structure, t)
         rec.log_transform("world", "camera", world_T_camera, t)
-        detections = self.measure.detect(frame.image, structure_T_camera)
+        detections, behind = self.measure.detect(frame.image, structure_T_camera)
         rec.log_record(topics.DETECTIONS, self.measure.detections_message(detections, t))
         record = {**ids, "turntable_rad": view.turntable_rad, "stewart_pose": list(view.stewart_pose),
                   "lift_m": view.lift_m,
                   "structure_T_camera": structure_T_camera.matrix().tolist(),
-                  "detections": self.measure.detections_to_json(detections)}
+                  "detections": self.measure.detections_to_json(detections),
+                  # read but not used, partly behind another tag: what a verdict says of a tag it missed
+                  "hidden_behind": {str(t): by for t, by in sorted(behind.items())}}
         if truth is not None:
             # kept in the view's record so that a resumed run can still score its later steps
             record["truth"] = {"structure_T_camera": truth["structure_T_camera"].matrix().tolist(),
@@ -1210,3 +1218,15 @@ def _rig_survey_line(sol: Any) -> str:
     return (f"rig calibration from {cal.views} views (corner rms {cal.rms_px:.2f} px): 1 sigma mount "
             f"{worst('platform_T_camera')}, Stewart base {worst('world_T_base')}, focal "
             f"{100 * sd['K']['fx_px'] / cal.K[0, 0]:.3f} %" + ("" if sol.ok else f"; {len(sol.problems)} warning(s) above"))
+
+
+def behind_note(views: list[dict[str, Any]], tag: int, module_of: dict[int, str]) -> str:
+    """What hid `tag` in `views` where it was read but dropped as partly behind another tag (the
+    views' "hidden_behind", `fiducials.hidden_behind`): ", read in 12 more but partly behind tag
+    523 (396S)", or nothing."""
+    by = Counter(v.get("hidden_behind", {}).get(str(tag)) for v in views)
+    by.pop(None, None)
+    if not by:
+        return ""
+    front = ", ".join(f"{t} ({module_of[t]})" if t in module_of else str(t) for t, _ in by.most_common())
+    return f", read in {sum(by.values())} more but partly behind tag {front}"

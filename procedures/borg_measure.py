@@ -58,17 +58,19 @@ class Measurement:
         self._measured: dict[str, dict[int, tuple[Pose3, np.ndarray | None]]] = {}
 
     # ---- detection ---------------------------------------------------------------------------
-    def detect(self, image: np.ndarray, structure_T_camera: Pose3 | None = None) -> list[Detection]:
-        """Tags in `image`; with the camera's pose from the kinematics, the design predicts each
-        tag's pose, which settles IPPE ambiguities."""
+    def detect(self, image: np.ndarray, structure_T_camera: Pose3 | None = None
+               ) -> tuple[list[Detection], dict[int, int]]:
+        """Tags in `image`, and those read but dropped as partly behind another (tag -> the tag in
+        front of it); with the camera's pose from the kinematics, the design predicts each tag's
+        pose, which settles IPPE ambiguities."""
         if structure_T_camera is None:
-            return self.detector.detect(image)
+            return self.detector.detect_with_hidden(image)
         camera_T_structure = structure_T_camera.inverse()
 
         def predict(tid: int) -> Pose3 | None:
             spec = self.model.tags.get(tid)
             return None if spec is None else camera_T_structure.compose(spec.structure_T_tag)
-        return self.detector.detect(image, predict)
+        return self.detector.detect_with_hidden(image, predict)
 
     @staticmethod
     def detections_to_json(detections: list[Detection]) -> list[dict[str, Any]]:

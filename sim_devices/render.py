@@ -40,7 +40,10 @@ Known limitations: no shading model beyond a tag's one light level (no glare, no
 reflection, no shadows), no motion blur, no rolling shutter, no fixed-pattern noise or hot pixels,
 no occlusion by anything other than other tags and the truss (the truss is drawn by
 `sim_devices.render_truss`, through `render_tags`'s overlay and the depth buffer `render_grey`
-keeps: the plane of each tag's corners, a bowed tag's bow left out of it); a tag partly behind the
+keeps: the plane of each tag's corners, a bowed tag's bow left out of it); tags are composited
+farthest centre first, so where two cards overlap the one whose centre is nearer is on top, whichever
+plane is nearer where they meet (a misplaced module's card pushed over a neighbour's on one face:
+docs/fiducials.md, "Tags hiding tags"); a tag partly behind the
 camera is dropped whole rather than clipped; the blur is applied to each tag at its centre's depth
 (not per pixel across a steeply inclined tag) and not across an occluding tag's outline; the
 background is blurred by the lens's own blur only.

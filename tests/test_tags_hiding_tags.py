@@ -66,3 +66,21 @@ def test_tags_side_by_side_on_one_surface_never_hide_each_other():
     assert partly_hidden([a, b + np.array([-6.0, 0.0])], [2.0, 2.1], 1.0, 0.5) == {1}
     # the grown square is the square's own homography: a cell of growth is a cell of the square
     assert np.allclose(grown_quad(a, 1.0), [[-5.0, -5.0], [45.0, -5.0], [45.0, 45.0], [-5.0, 45.0]], atol=1e-4)
+
+
+def test_the_detector_says_which_tag_hid_the_one_it_dropped():
+    img, _ = scene(0.2)
+    found, behind = TagDetector(K, DIST, {5: SIZE, 7: SIZE}).detect_with_hidden(img)
+    assert [d.tag_id for d in found] == [7] and behind == {5: 7}
+    clear, none = TagDetector(K, DIST, {5: SIZE, 7: SIZE}).detect_with_hidden(scene(-1.0)[0])
+    assert [d.tag_id for d in clear] == [5, 7] and none == {}
+
+
+def test_a_run_names_the_tag_in_front_of_one_it_could_not_use():
+    from procedures.borg import behind_note
+
+    views = [{"hidden_behind": {"524": 523}}, {"hidden_behind": {}}, {"hidden_behind": {"524": 523, "17": 3}},
+             {}]                                   # a view recorded before runs kept this
+    assert behind_note(views, 524, {523: "396S", 524: "397S"}) == ", read in 2 more but partly behind tag 523 (396S)"
+    assert behind_note(views, 17, {}) == ", read in 1 more but partly behind tag 3"
+    assert behind_note(views, 99, {}) == ""
