@@ -233,7 +233,14 @@ def _bias_at(g: np.ndarray, seen: np.ndarray, corners: np.ndarray, initial: np.n
     todo = np.flatnonzero(needs_correction(q, seen) & np.isfinite(seen))
     if len(todo) == 0:
         return bias, sigma
-    model = np.zeros_like(g)
+    # Each tag's model is drawn on a canvas its neighbours' models do not reach: drawn on one
+    # canvas, a neighbour's patch (its quiet zone, background and blur margin) painted over a
+    # tag's own model where two tags lie within a few cells in the image, and the fit on the model
+    # then read that tag's facing edge off by up to 0.6 px, a bias the corners were then corrected
+    # by (docs/fiducials.md, "Tags hiding tags").
+    canvases: list[np.ndarray] = []
+    taken: list[list[tuple[int, int, int, int]]] = []       # the patches drawn on each canvas
+    layer = np.full(N, -1)
     done = []
     for k in todo:
         guess = max(float(seen[k]), MIN_SIGMA_PX)
@@ -268,15 +275,27 @@ def _bias_at(g: np.ndarray, seen: np.ndarray, corners: np.ndarray, initial: np.n
         contrast = levels[1] - levels[0]
         if not (contrast > 0 and misfit <= MAX_MISFIT * contrast):
             continue                                    # not the tag the model draws: leave it as fitted
-        model[y0:y0 + h, x0:x0 + w] = blurred @ levels.astype(np.float32)
+        box = (x0, y0, x0 + w, y0 + h)
+        j = next((i for i, boxes in enumerate(taken) if not any(_meet(box, o) for o in boxes)), len(taken))
+        if j == len(taken):
+            canvases.append(np.zeros_like(g))
+            taken.append([])
+        canvases[j][y0:y0 + h, x0:x0 + w] = blurred @ levels.astype(np.float32)
+        taken[j].append(box)
+        layer[k] = j
         sigma[k] = best
         done.append(k)
-    if not done:
-        return bias, sigma
-    done = np.asarray(done)
-    fit = fit_quads(model, np.asarray(initial, dtype=np.float64).reshape(-1, 4, 2)[done], None, quiet_zone=quiet_zone)
-    b = fit.corners - q[done]
-    # bias = what the fit reads on a model drawn at `corners`, less them
-    ok = np.all(np.isfinite(b), axis=(1, 2)) & fit.edges_fitted.all(axis=1)
-    bias[done[ok]] = b[ok]
+    start = np.asarray(initial, dtype=np.float64).reshape(-1, 4, 2)
+    for j, model in enumerate(canvases):
+        these = np.flatnonzero(layer == j)
+        fit = fit_quads(model, start[these], None, quiet_zone=quiet_zone)
+        b = fit.corners - q[these]
+        # bias = what the fit reads on a model drawn at `corners`, less them
+        ok = np.all(np.isfinite(b), axis=(1, 2)) & fit.edges_fitted.all(axis=1)
+        bias[these[ok]] = b[ok]
     return bias, sigma
+
+
+def _meet(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
+    """Whether two patches (x0, y0, x1, y1; x1, y1 past the end) share a pixel."""
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
