@@ -188,6 +188,12 @@ def grown_quad(corners: np.ndarray, cells: float) -> np.ndarray:
 HIDDEN_MIN_OVERLAP_CELLS2 = 0.25     # an overlap smaller than this (in the farther tag's cells) is a corner's graze
 
 
+# Predicted planes closer than this where two tags overlap in the image do not say which is in
+# front (a module just placed is predicted at its design pose, good to its tolerance at best):
+# the centres' distances decide, as without predictions.
+HIDDEN_ORDER_MIN_M = 0.002
+
+
 def partly_hidden(corners: Sequence[np.ndarray], distances: Sequence[float], quiet_cells: float,
                   margin_cells: float) -> set[int]:
     """Indices of the tags a nearer one covers (`hidden_behind`'s keys)."""
@@ -195,16 +201,23 @@ def partly_hidden(corners: Sequence[np.ndarray], distances: Sequence[float], qui
 
 
 def hidden_behind(corners: Sequence[np.ndarray], distances: Sequence[float], quiet_cells: float,
-                  margin_cells: float) -> dict[int, int]:
+                  margin_cells: float, planes: np.ndarray | None = None,
+                  undistort: Callable[[np.ndarray], np.ndarray] | None = None) -> dict[int, int]:
     """Each tag a nearer one covers -> a tag that covers it (indices into `corners`): the nearer
     tag's outer edge (black square grown by `quiet_cells`) overlaps the other's black square grown
     by `margin_cells` by more than `HIDDEN_MIN_OVERLAP_CELLS2` of its cells (a nearer tag grazing
     a corner of that band, 0.04 of a cell, left the corners unbiased to 0.002 px on a noise-free
     render).  Tags on one flat surface, as designed, never overlap in an image, so an overlap
-    means one stands in front of the other; the farther by its centre's distance is taken to be
-    behind.  Not always so: a misplaced module can push its tag's card over a neighbour's on the
-    same face, and which card is on top is then decided where they meet, by millimetres one
-    view's poses cannot resolve (docs/fiducials.md, "Tags hiding tags")."""
+    means one stands in front of the other: which one, where they meet.
+
+    With `planes` ((n, 4): each tag's predicted plane in the camera frame, unit normal and offset,
+    n.X = d; NaN where not predicted) and `undistort` (pixels (k, 2) -> normalised image points),
+    the plane nearer along the line of sight through the overlap's centre, when the two differ
+    there by more than HIDDEN_ORDER_MIN_M; otherwise the nearer centre.  The centres are right for
+    tags at different depths, not for neighbours on one face whose cards a misplaced module pushed
+    together: seen from below, the higher reads farther whichever card is on top (N = 8: a clean
+    tag dropped in all twelve of its views; one view's poses cannot tell the planes apart, the
+    graph's estimate of the misplaced module can: docs/fiducials.md, "Tags hiding tags")."""
     n = len(corners)
     if n < 2:
         return {}
@@ -213,17 +226,39 @@ def hidden_behind(corners: Sequence[np.ndarray], distances: Sequence[float], qui
     cell_area = [abs(cv2.contourArea(np.asarray(c, dtype=np.float32).reshape(4, 2))) / 64.0 for c in corners]
     lo = np.array([o.min(axis=0) for o in outer])
     hi = np.array([o.max(axis=0) for o in outer])
+    known = np.zeros(n, bool) if planes is None or undistort is None else np.isfinite(planes).all(axis=1)
     out: dict[int, int] = {}
     for i in range(n):
         for j in range(n):
-            if i == j or distances[j] >= distances[i]:
+            if i == j or (distances[j] >= distances[i] and not (known[i] and known[j])):
                 continue
             if np.any(lo[j] > hi[i]) or np.any(lo[i] > hi[j]):
                 continue            # boxes apart: nothing to intersect
-            area, _ = cv2.intersectConvexConvex(outer[j], inner[i])
-            if area > HIDDEN_MIN_OVERLAP_CELLS2 * cell_area[i]:
+            area, shared = cv2.intersectConvexConvex(outer[j], inner[i])
+            if area <= HIDDEN_MIN_OVERLAP_CELLS2 * cell_area[i]:
+                continue
+            j_in_front = distances[j] < distances[i]
+            if known[i] and known[j]:
+                assert planes is not None and undistort is not None
+                x, y = undistort(np.asarray(shared, np.float64).reshape(-1, 2).mean(axis=0)[None]).reshape(2)
+                ray = np.array([x, y, 1.0])
+                depth_i, depth_j = (planes[k, 3] / (planes[k, :3] @ ray) for k in (i, j))
+                if abs(depth_i - depth_j) > HIDDEN_ORDER_MIN_M:
+                    j_in_front = bool(depth_j < depth_i)
+            if j_in_front:
                 out[i] = j
                 break
+    return out
+
+
+def predicted_planes(poses: Sequence[Pose3 | None]) -> np.ndarray:
+    """(n, 4): each predicted camera_T_tag's plane in the camera frame (unit normal, offset: n.X =
+    d), NaN where there is no prediction."""
+    out = np.full((len(poses), 4), np.nan)
+    for k, pose in enumerate(poses):
+        if pose is not None:
+            normal = pose.rotation().matrix()[:, 2]
+            out[k] = (*normal, float(normal @ pose.translation()))
     return out
 
 
@@ -261,8 +296,9 @@ class TagDetector:
 
     def detect_with_hidden(self, image: np.ndarray, predict: Callable[[int], Pose3 | None] | None = None
                            ) -> tuple[list[Detection], dict[int, int]]:
-        """`detect`, and the tags read but dropped as partly behind another (`hidden_behind`): tag
-        id -> the id of a tag in front of it (what a run says of a tag it could not use)."""
+        """`detect`, and the tags read but dropped as partly behind another (`hidden_behind`, which
+        orders two overlapping tags by `predict`'s planes where it can): tag id -> the id of a tag
+        in front of it (what a run says of a tag it could not use)."""
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         out: list[Detection] = []
         for tid, c in zip(*self.find(grey)):
@@ -273,11 +309,17 @@ class TagDetector:
         if self.config.hidden_margin_cells is not None:
             hidden = hidden_behind([d.corners_px for d in out],
                                    [float(np.linalg.norm(d.camera_T_tag.translation())) for d in out],
-                                   1.0 if self.config.quiet_zone else 0.0, self.config.hidden_margin_cells)
+                                   1.0 if self.config.quiet_zone else 0.0, self.config.hidden_margin_cells,
+                                   None if predict is None else predicted_planes([predict(d.tag_id) for d in out]),
+                                   self.normalised)
             behind = {out[i].tag_id: out[j].tag_id for i, j in hidden.items()}
             out = [d for i, d in enumerate(out) if i not in hidden]
         out.sort(key=lambda d: d.tag_id)
         return out, behind
+
+    def normalised(self, px: np.ndarray) -> np.ndarray:
+        """Pixels (k, 2) as normalised image points (k, 2), the lens's distortion taken out."""
+        return cv2.undistortPoints(np.asarray(px, np.float64).reshape(-1, 1, 2), self.K, self.dist).reshape(-1, 2)
 
     def find(self, grey: np.ndarray) -> tuple[list[int], np.ndarray]:
         """Our tags' ids and refined corners (N, 4, 2) in a grey image, every check passed, before

@@ -56,20 +56,26 @@ class Measurement:
         self._verdicts: dict[str, Verdict] = {}
         # each module's tags as measured in its own step, before its semantic factors joined
         self._measured: dict[str, dict[int, tuple[Pose3, np.ndarray | None]]] = {}
+        self._estimated_tags: dict[int, Pose3] = {}     # the graph's tags as this round began
 
     # ---- detection ---------------------------------------------------------------------------
     def detect(self, image: np.ndarray, structure_T_camera: Pose3 | None = None
                ) -> tuple[list[Detection], dict[int, int]]:
         """Tags in `image`, and those read but dropped as partly behind another (tag -> the tag in
-        front of it); with the camera's pose from the kinematics, the design predicts each tag's
-        pose, which settles IPPE ambiguities."""
+        front of it); with the camera's pose from the kinematics, each tag's pose is predicted (the
+        graph's estimate as the round began, else the design), which settles IPPE ambiguities and
+        says which of two overlapping tags is in front (`fiducials.hidden_behind`)."""
         if structure_T_camera is None:
             return self.detector.detect_with_hidden(image)
         camera_T_structure = structure_T_camera.inverse()
+        estimated = self._estimated_tags
 
         def predict(tid: int) -> Pose3 | None:
-            spec = self.model.tags.get(tid)
-            return None if spec is None else camera_T_structure.compose(spec.structure_T_tag)
+            pose = estimated.get(tid)
+            if pose is None:
+                spec = self.model.tags.get(tid)
+                pose = None if spec is None else spec.structure_T_tag
+            return None if pose is None else camera_T_structure.compose(pose)
         return self.detector.detect_with_hidden(image, predict)
 
     @staticmethod
@@ -111,6 +117,9 @@ class Measurement:
         if module not in self.placed:
             self.placed.append(module)
         self.last_views = []
+        # read here, on the caller's thread: the round's views are detected on a worker while
+        # nothing changes the graph until `end_round`
+        self._estimated_tags = self.slam.tag_estimates()
 
     def add_view(self, view: dict[str, Any], detections: list[Detection]) -> None:
         """One view of the round into the graph (its camera, its factors, its new tags' sightings),

@@ -40,10 +40,10 @@ Known limitations: no shading model beyond a tag's one light level (no glare, no
 reflection, no shadows), no motion blur, no rolling shutter, no fixed-pattern noise or hot pixels,
 no occlusion by anything other than other tags and the truss (the truss is drawn by
 `sim_devices.render_truss`, through `render_tags`'s overlay and the depth buffer `render_grey`
-keeps: the plane of each tag's corners, a bowed tag's bow left out of it); tags are composited
-farthest centre first, so where two cards overlap the one whose centre is nearer is on top, whichever
-plane is nearer where they meet (a misplaced module's card pushed over a neighbour's on one face:
-docs/fiducials.md, "Tags hiding tags"); a tag partly behind the
+keeps: the plane of each tag's corners, a bowed tag's bow left out of it); tags are drawn farthest
+centre first, each where no tag drawn before is nearer (the depth buffer holds a pixel's depth
+where a tag covers more than half of it, so the one-pixel seam where a card's edge lies over
+another tag is blended with the background, not with that tag); a tag partly behind the
 camera is dropped whole rather than clipped; the blur is applied to each tag at its centre's depth
 (not per pixel across a steeply inclined tag) and not across an occluding tag's outline; the
 background is blurred by the lens's own blur only.
@@ -357,12 +357,16 @@ def _bowed(X: np.ndarray, Y: np.ndarray, gx: np.ndarray, gy: np.ndarray, K: np.n
     return x, y
 
 
+_DEPTH_TIE_M = 1e-4    # a tag this little behind one drawn before still shows (coplanar neighbours)
+
+
 def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: np.ndarray, dist: np.ndarray,
               tag_id: int, size_m: float, M: np.ndarray, black: float, white: float, blur: float,
               look: TagLook | None = None, depth: np.ndarray | None = None) -> None:
-    """Composite one tag into `img` (grey levels, float32), in place; with `depth`, also keep the
-    tag plane's depth (m along the optical axis; the plane of its corners, a bow left out) where the
-    tag covers more than half a pixel and is nearer than what `depth` holds."""
+    """Composite one tag into `img` (grey levels, float32), in place; with `depth`, not where a tag
+    drawn before is nearer, and keep the tag plane's depth (m along the optical axis; the plane of
+    its corners, a bow left out) where the tag covers more than half a pixel and is nearer than
+    what `depth` holds."""
     height, width = img.shape
     R, t = M[:3, :3], M[:3, 3]
     cells = _marker_cells(tag_id)                          # (n, n): quiet zone + black square
@@ -445,16 +449,24 @@ def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: n
              * (_lookup(tab_v, (n - v) * inv_gv) - _lookup(tab_v, -v * inv_gv)))
     acc_a = cover.reshape(shape)
     acc_s = (black * cover + (white - black) * on_white).reshape(shape)
+    # the ray through each ideal pixel meets the tag plane n.X = n.t at this z
+    n_ = R[:, 2]
+    ray = n_[0] * (gx - K[0, 2]) / K[0, 0] + n_[1] * (gy - K[1, 2]) / K[1, 1] + n_[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(ray * float(n_ @ t) > 0, float(n_ @ t) / ray, np.inf)
+    if depth is not None:
+        # where a tag drawn before is nearer (two cards overlapping: the one whose centre is
+        # nearer may lie behind where they meet), this one is behind it
+        droi = depth[y0:y1, x0:x1]
+        behind = z > droi + _DEPTH_TIE_M
+        if behind.any():
+            acc_a = np.where(behind, 0.0, acc_a)
+            acc_s = np.where(behind, 0.0, acc_s)
     roi = img[y0:y1, x0:x1]
     roi *= 1.0 - acc_a
     roi += acc_s
-    if depth is not None:   # the ray through each ideal pixel meets the tag plane n.X = n.t at this z
-        n_ = R[:, 2]
-        ray = n_[0] * (gx - K[0, 2]) / K[0, 0] + n_[1] * (gy - K[1, 2]) / K[1, 1] + n_[2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.where((acc_a > 0.5) & (ray * float(n_ @ t) > 0), float(n_ @ t) / ray, np.inf)
-        droi = depth[y0:y1, x0:x1]
-        np.minimum(droi, z.astype(np.float32), out=droi)
+    if depth is not None:
+        np.minimum(droi, np.where(acc_a > 0.5, z, np.inf).astype(np.float32), out=droi)
 
 
 def render_grey(
@@ -513,6 +525,8 @@ def render_grey(
             continue
         visible.append((float(np.linalg.norm(t)), int(tag_id), float(size_m), M))
 
+    if depth is None:       # the tags' own depth test needs one
+        depth = np.full((height, width), np.inf, np.float32)
     for _, tag_id, size_m, M in sorted(visible, key=lambda v: -v[0]):
         look = looks.get(tag_id) if looks else None
         blur = blur_sigma_px

@@ -84,3 +84,29 @@ def test_a_run_names_the_tag_in_front_of_one_it_could_not_use():
     assert behind_note(views, 524, {523: "396S", 524: "397S"}) == ", read in 2 more but partly behind tag 523 (396S)"
     assert behind_note(views, 17, {}) == ", read in 1 more but partly behind tag 3"
     assert behind_note(views, 99, {}) == ""
+
+
+def test_of_two_overlapping_cards_the_one_on_top_is_kept_where_the_predicted_planes_say_which():
+    # Neighbours on one face seen off-axis, one card 6 mm proud of the other's plane and over 0.2
+    # of a cell of its black (N = 8 seed 2: 396S turned 1.5 deg pushed tag 523 under 524's card).
+    # The card on top has the farther centre: the centres' distances drop it and keep the covered
+    # one; the predicted planes (the graph's estimate of the misplaced module) say which is on top.
+    under = facing(0.5, 0.0, 2.2)
+    over = facing(0.5 + SIZE + CELL - 0.2 * CELL, 0.0, 2.194)
+    assert np.linalg.norm(over.translation()) > np.linalg.norm(under.translation())
+    img = render_tags(K, DIST, W, H, [(5, SIZE, under), (7, SIZE, over)], background=110.0, blur_sigma_px=0.8,
+                      noise_sigma=2.0, rng=np.random.default_rng(0))
+    det = TagDetector(K, DIST, {5: SIZE, 7: SIZE})
+    unchecked = {d.tag_id: d.corners_px for d in TagDetector(K, DIST, {5: SIZE, 7: SIZE},
+                                                              DetectorConfig(hidden_margin_cells=None)).detect(img)}
+    # what is at stake: the covered edge reads off, the card on top reads true
+    assert np.linalg.norm(unchecked[5] - tag_corners_px(K, under, SIZE, DIST), axis=1).max() > 0.3
+    assert np.linalg.norm(unchecked[7] - tag_corners_px(K, over, SIZE, DIST), axis=1).max() < 0.1
+    by_centres, behind = det.detect_with_hidden(img)
+    assert [d.tag_id for d in by_centres] == [5] and behind == {7: 5}
+    poses = {5: under, 7: over}
+    by_planes, behind = det.detect_with_hidden(img, poses.get)
+    assert [d.tag_id for d in by_planes] == [7] and behind == {5: 7}
+    # planes within HIDDEN_ORDER_MIN_M of each other where the cards meet say nothing: the centres decide
+    level = {5: under, 7: facing(*over.translation()[:2], 2.1995)}
+    assert [d.tag_id for d in det.detect(img, level.get)] == [5]
