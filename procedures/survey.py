@@ -60,7 +60,11 @@ def unoccluded(lo: np.ndarray, hi: np.ndarray, rows: np.ndarray, overlap: float)
 
 
 # the detector's hiding rule (`estimation.fiducials.partly_hidden`) as the run's detector applies it:
-# a tag's quiet zone is one cell wide, and its black square counts grown by the detector's margin
+# a tag's quiet zone is one cell wide, and its black square counts grown by the detector's margin.
+# The planner takes the nearer centre to be in front, as the detector does without predictions;
+# a run's detector orders two overlapping cards by their predicted planes where they meet, so
+# for neighbours a misplaced module pushed together the planner may count hidden a tag the run
+# reads (it then looks for other views: the safe side)
 _QUIET_CELLS = 1.0
 _HIDDEN_MARGIN_CELLS = float(DetectorConfig().hidden_margin_cells or 0.0)
 # how far past its black square's image box a grown square can reach, as a fraction of the box
