@@ -236,8 +236,8 @@ def _bias_at(g: np.ndarray, seen: np.ndarray, corners: np.ndarray, initial: np.n
     # Each tag's model is drawn on a canvas its neighbours' models do not reach: drawn on one
     # canvas, a neighbour's patch (its quiet zone, background and blur margin) painted over a
     # tag's own model where two tags lie within a few cells in the image, and the fit on the model
-    # then read that tag's facing edge off by up to 0.6 px, a bias the corners were then corrected
-    # by (docs/fiducials.md, "Tags hiding tags").
+    # read that tag's facing edge wherever the neighbour's model put something like an edge: clean
+    # tags "corrected" up to 0.8 px off (docs/fiducials.md, "When the blur is comparable to a cell").
     canvases: list[np.ndarray] = []
     taken: list[list[tuple[int, int, int, int]]] = []       # the patches drawn on each canvas
     layer = np.full(N, -1)
