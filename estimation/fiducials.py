@@ -251,6 +251,26 @@ def hidden_behind(corners: Sequence[np.ndarray], distances: Sequence[float], qui
     return out
 
 
+BORDER_EDGE_PX = 0.5     # an edge whose ends both lie this near the frame's outermost pixel centres ...
+# ... and whose middle lies on or past them
+
+
+def along_border(corners: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Which quads (N, 4, 2) have an edge along the frame's edge: both its ends within
+    BORDER_EDGE_PX of the outermost pixel centres of one side (or past them) and its middle on or
+    past them.  Its bright side is off the frame, and the fit's assumption there (the quiet zone
+    goes on) read a frontal tag's edge 0.1 px off with its ends on the last row's centres, 0.3 px
+    half a pixel past them, and 1.2 px at N = 8 (a tag's bottom edge from 0.4 px inside row 719 to
+    0.8 px past it, in eight views); half a pixel inside, 0.03 px.  A tag with only a corner at the
+    border keeps its edges' bright sides in the frame (0.02-0.05 px: docs/fiducials.md)."""
+    c = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
+    h, w = shape[:2]
+    # each corner's distance inside the outermost pixel centres of each side (negative: past them)
+    inside = np.stack([c[..., 0], w - 1 - c[..., 0], c[..., 1], h - 1 - c[..., 1]], axis=-1)   # (N, 4, 4)
+    nxt = np.roll(inside, -1, axis=1)                             # an edge: corner i and corner i + 1
+    return ((inside <= BORDER_EDGE_PX) & (nxt <= BORDER_EDGE_PX) & (inside + nxt <= 0.0)).any(axis=(1, 2))
+
+
 def predicted_planes(poses: Sequence[Pose3 | None]) -> np.ndarray:
     """(n, 4): each predicted camera_T_tag's plane in the camera frame (unit normal, offset: n.X =
     d), NaN where there is no prediction."""
@@ -359,6 +379,10 @@ class TagDetector:
             started.append(_rolled_like(rej[ok[n:]][good], rolled[good]))
         corners = np.concatenate(found).reshape(-1, 4, 2)
         initial = np.concatenate(started).reshape(-1, 4, 2)
+        if len(corners):
+            on_border = along_border(corners, grey.shape)
+            found_ids = [t for t, b in zip(found_ids, on_border) if not b]
+            corners, initial = corners[~on_border], initial[~on_border]
         if cfg.quiet_zone and len(corners):
             blur = edge_blur_px(grey, corners)              # read once: the ring's scale and the bias model's
             clear = ring_deviation(grey, corners, blur) <= cfg.max_ring_deviation

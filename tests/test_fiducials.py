@@ -148,3 +148,17 @@ def test_tags_touching_the_frame_border_are_found(detector):
     assert abs(tag_corners_px(K, T, SIZE, DIST)[:, 0].min() + 0.2) < 0.05
     (d,) = detector.detect(render([(4, T)]))
     assert np.max(np.linalg.norm(d.corners_px - tag_corners_px(K, T, SIZE, DIST), axis=1)) < 0.2
+
+
+@pytest.mark.parametrize("beyond_px", [0.3, 0.8])
+def test_a_tag_whose_edge_lies_along_the_frames_edge_is_dropped(detector, beyond_px):
+    # its bright side is off the frame: at N = 8 a tag whose bottom edge lay on row 719 read 1.2 px
+    # off in eight views; a tag with only a corner at the border is kept (the test above)
+    y = 0.0
+    for _ in range(4):                                  # the bottom edge's lower end `beyond_px` past row H - 1
+        T = Pose3(Rot3.Rx(np.pi).compose(Rot3.Rz(0.01)), np.array([0.3, y, 3.7]))
+        y += (H - 1 + beyond_px - tag_corners_px(K, T, SIZE, DIST)[:, 1].max()) * 3.7 / K[1, 1]
+    assert detector.detect(render([(4, T)])) == []
+    T_in = Pose3(T.rotation(), T.translation() - np.array([0.0, 4.0 * 3.7 / K[1, 1], 0.0]))   # 4 px up: kept
+    (d,) = detector.detect(render([(4, T_in)]))
+    assert np.max(np.linalg.norm(d.corners_px - tag_corners_px(K, T_in, SIZE, DIST), axis=1)) < 0.1
