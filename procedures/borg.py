@@ -712,8 +712,12 @@ class BorgProcedure:
                 return camera is None or side_ratio(np.asarray(d["corners_px"], float), *camera) >= MIN_SIDE_RATIO
         return False
 
+    @cached_property
+    def _module_of_tag(self) -> dict[int, str]:
+        return {t: spec.module for t, spec in self.model.tags.items()}
+
     def _behind_note(self, name: str, tag: int) -> str:
-        return behind_note(self._step_views(name), tag, {t: spec.module for t, spec in self.model.tags.items()})
+        return behind_note(self._step_views(name), tag, self._module_of_tag)
 
     def _step_views(self, name: str) -> list[dict[str, Any]]:
         """The views of this step's current attempt, every round."""

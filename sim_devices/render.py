@@ -362,11 +362,11 @@ _DEPTH_TIE_M = 1e-4    # a tag this little behind one drawn before still shows (
 
 def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: np.ndarray, dist: np.ndarray,
               tag_id: int, size_m: float, M: np.ndarray, black: float, white: float, blur: float,
-              look: TagLook | None = None, depth: np.ndarray | None = None) -> None:
-    """Composite one tag into `img` (grey levels, float32), in place; with `depth`, not where a tag
-    drawn before is nearer, and keep the tag plane's depth (m along the optical axis; the plane of
-    its corners, a bow left out) where the tag covers more than half a pixel and is nearer than
-    what `depth` holds."""
+              look: TagLook | None, depth: np.ndarray) -> None:
+    """Composite one tag into `img` (grey levels, float32), in place, but not where `depth` says a
+    tag drawn before is nearer; keep the tag plane's depth (m along the optical axis; the plane of
+    its corners, a bow left out) in `depth` where the tag covers more than half a pixel and is
+    nearer than what it holds."""
     height, width = img.shape
     R, t = M[:3, :3], M[:3, 3]
     cells = _marker_cells(tag_id)                          # (n, n): quiet zone + black square
@@ -454,19 +454,17 @@ def _draw_tag(img: np.ndarray, ideal: tuple[np.ndarray, np.ndarray] | None, K: n
     ray = n_[0] * (gx - K[0, 2]) / K[0, 0] + n_[1] * (gy - K[1, 2]) / K[1, 1] + n_[2]
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where(ray * float(n_ @ t) > 0, float(n_ @ t) / ray, np.inf)
-    if depth is not None:
-        # where a tag drawn before is nearer (two cards overlapping: the one whose centre is
-        # nearer may lie behind where they meet), this one is behind it
-        droi = depth[y0:y1, x0:x1]
-        behind = z > droi + _DEPTH_TIE_M
-        if behind.any():
-            acc_a = np.where(behind, 0.0, acc_a)
-            acc_s = np.where(behind, 0.0, acc_s)
+    # where a tag drawn before is nearer (two cards overlapping: the one whose centre is nearer
+    # may lie behind where they meet), this one is behind it
+    droi = depth[y0:y1, x0:x1]
+    behind = z > droi + _DEPTH_TIE_M
+    if behind.any():
+        acc_a = np.where(behind, 0.0, acc_a)
+        acc_s = np.where(behind, 0.0, acc_s)
     roi = img[y0:y1, x0:x1]
     roi *= 1.0 - acc_a
     roi += acc_s
-    if depth is not None:
-        np.minimum(droi, np.where(acc_a > 0.5, z, np.inf).astype(np.float32), out=droi)
+    np.minimum(droi, np.where(acc_a > 0.5, z, np.inf).astype(np.float32), out=droi)
 
 
 def render_grey(
