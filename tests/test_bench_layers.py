@@ -130,10 +130,41 @@ def test_a_run_taken_as_it_was_found_leaves_the_time_per_module_to_the_others():
     assert aggregate([{**trial, "seed": 0, "wall_s": None}])[0]["wall_s_per_module"] is None
 
 
+def _study_file(path, seeds):
+    mod = {"name": "a", "layer": 0, "fault": False, "verdict": "ok", "views": 4, "error_m": 0.0002,
+           "sigma_m": 0.0004, "replanned": False}
+    trials = [{"n": 3, "seed": s, "modules": [{**mod, "error_m": 0.0001 * (s + 1)}], "peak_rss_mb": None,
+               "slam_update_s_median": 0.01, "wall_s": 10.0} for s in seeds]
+    path.write_text(json.dumps({"command": f"lab bench layers --first-seed {seeds[0]}", "runs": len(trials),
+                                "wall_s": 10.0 * len(trials), "trials": trials}))
+    return str(path)
+
+
+def test_studies_added_to_each_other_are_told_together_each_seed_once(lab, tmp_path):
+    a, b = _study_file(tmp_path / "a.json", [0, 1]), _study_file(tmp_path / "b.json", [2])
+    code, out, err = lab.main("bench", "layers", "--report", a, b)
+    assert code == 0, err
+    # three runs over both files; the largest error is seed 2's, from the second file
+    assert "(3 runs, 30 s)" in out and "| 3 | all | 3 | 3 |" in out and "/ 0.30 |" in out
+    code, out, err = lab.main("bench", "layers", "--report", a, _study_file(tmp_path / "c.json", [1, 2]))
+    assert code == 2 and "N 3, seed 1 is also in" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_study_can_start_at_a_later_seed(lab, tmp_path, monkeypatch):
+    import lab.studies.bench_layers as layers
+
+    seen = []
+    monkeypatch.setattr(layers, "run_trial_study", lambda args, name, runs, *rest: seen.extend(runs) or 0)
+    assert lab.main("bench", "layers", "--sizes", "3", "--seeds", "2", "--first-seed", "3",
+                    "--out", str(tmp_path))[0] == 0
+    assert [t.key for t in seen] == ["n3-seed3", "n3-seed4"]
+
+
 @pytest.mark.parametrize("args, match", [(["--sizes", "3,11"], "--sizes must be in 2..10"),
                                          (["--sizes", "3,x"], "--sizes: expected integers"),
                                          (["--seeds", "0"], "--seeds >= 1"),
-                                         (["--speedup", "0"], "--speedup must be in")])
+                                         (["--speedup", "0"], "--speedup must be in"),
+                                         (["--first-seed", "-1"], "--first-seed must be 0 or more")])
 def test_bad_input_is_one_line_exit_2(lab, args, match):
     code, out, err = lab.main("bench", "layers", *args)
     assert code == 2 and match in err and len(err.strip().splitlines()) == 1, err

@@ -119,19 +119,50 @@ def study_size(args: argparse.Namespace, quick_scales: str) -> tuple[int, int, l
     return seeds, modules, scales
 
 
-def report_study(path: str, name: str, aggregate: Callable[[list[dict]], list[dict]],
+def report_study(paths: str | Sequence[str], name: str, aggregate: Callable[[list[dict]], list[dict]],
                  to_markdown: Callable[[dict], str]) -> int:
-    """`lab bench NAME --report FILE`: the tables of a finished or interrupted study's NAME.json."""
+    """`lab bench NAME --report FILE [FILE ...]`: the tables of a finished or interrupted study's
+    NAME.json, or of several studies' trials together (the same trial in two files is refused: a
+    seed counted twice would look like more evidence than there is)."""
     from lab.core.errors import UserError
 
+    paths = [paths] if isinstance(paths, str) else list(paths)
+    merged: dict[str, Any] | None = None
+    seen: dict[tuple, str] = {}
+    for path in paths:
+        try:
+            res = json.loads(Path(path).read_text())
+            trials = res["trials"]
+            keys = [tuple((k, t[k]) for k in _TRIAL_IDENTITY if k in t) for t in trials]
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise UserError(f"--report {path}: not a study's {name}.json ({exc})") from None
+        for key in keys:
+            if key in seen:
+                raise UserError(f"--report {path}: its trial {_trial_name(key)} is also in {seen[key]}")
+            seen[key] = path
+        if merged is None:
+            merged = res
+        else:
+            merged["trials"] = merged["trials"] + trials
+            merged["runs"] = merged.get("runs", 0) + res.get("runs", len(trials))
+            merged["wall_s"] = merged.get("wall_s", 0.0) + res.get("wall_s", 0.0)
+            merged["command"] = f"{merged['command']}; {res['command']}"
+    assert merged is not None
     try:
-        res = json.loads(Path(path).read_text())
-        res["rows"] = aggregate(res["trials"])
-        text = to_markdown(res)
-    except (OSError, ValueError, KeyError) as exc:
-        raise UserError(f"--report {path}: not a study's {name}.json ({exc})") from None
+        merged["rows"] = aggregate(merged["trials"])
+        text = to_markdown(merged)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise UserError(f"--report {', '.join(paths)}: not a study's {name}.json ({exc})") from None
     print(text)
     return 0
+
+
+# what names a trial in the studies' journals (layers: N and seed; trust: camera, scale and seed; ...)
+_TRIAL_IDENTITY = ("n", "camera", "mode", "scale", "seed")
+
+
+def _trial_name(key: tuple) -> str:
+    return ", ".join(f"{'N' if k == 'n' else k} {v}" for k, v in key)
 
 
 def run_trial_study(args: argparse.Namespace, name: str, runs: Sequence[Trial], trial: Callable[[Trial], dict],

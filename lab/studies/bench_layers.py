@@ -56,11 +56,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="N = 3 and 4, one seed")
     p.add_argument("--sizes", default=None, help="BORG sizes, comma-separated (default 3..10; --quick 3,4)")
     p.add_argument("--seeds", type=int, default=None, help="seeds per size (default 5; --quick 1)")
+    p.add_argument("--first-seed", type=int, default=0, metavar="S",
+                   help="the first seed (default 0): seeds S .. S+K-1, so a study can be added to "
+                        "(the tables of several: --report A.json B.json)")
     p.add_argument("--speedup", type=float, default=100.0, help="simulated device speed-up (default 100)")
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
     p.add_argument("--out", default="bench_out/layers", help="directory for the runs (default bench_out/layers)")
-    p.add_argument("--report", metavar="JSON", help="print the tables of an earlier (or interrupted) study's "
-                                                   "layers.json instead of running one")
+    p.add_argument("--report", metavar="JSON", nargs="+",
+                   help="print the tables of an earlier (or interrupted) study's layers.json instead of running "
+                        "one; of several studies' runs together when given several (each N and seed once)")
     add_executor_arguments(p)
 
 
@@ -353,9 +357,16 @@ def run(args: argparse.Namespace) -> int:
     seeds = args.seeds if args.seeds is not None else (1 if args.quick else 5)
     if not sizes or any(not 2 <= n <= MAX_N for n in sizes) or seeds < 1:
         raise UserError(f"--sizes must be in 2..{MAX_N}, --seeds >= 1")
+    if args.first_seed < 0:
+        raise UserError(f"--first-seed must be 0 or more, got {args.first_seed}")
     if not (math.isfinite(args.speedup) and 1 <= args.speedup <= 1000):
         raise UserError(f"--speedup must be in [1, 1000], got {args.speedup}")
     out = Path(args.out).resolve()
-    runs = [Trial(f"n{n}-seed{seed}", seed, RunSpec(str(out), n, args.speedup)) for n in sizes for seed in range(seeds)]
-    return run_trial_study(args, "layers", runs, layers_trial, {"sizes": sizes, "seeds": seeds},
+    runs = [Trial(f"n{n}-seed{seed}", seed, RunSpec(str(out), n, args.speedup)) for n in sizes
+            for seed in range(args.first_seed, args.first_seed + seeds)]
+    params: dict[str, Any] = {"sizes": sizes, "seeds": seeds}
+    if args.first_seed:
+        # only when set, so a study journaled before the flag existed still resumes
+        params["first_seed"] = args.first_seed
+    return run_trial_study(args, "layers", runs, layers_trial, params,
                            aggregate, to_markdown, _progress)
