@@ -78,7 +78,9 @@ def test_a_view_label_names_the_lift_only_when_it_is_used():
 def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> tuple[list[int], dict[int, float]]:
     """The documented rules, one tag at a time: near enough, facing the camera within the view
     angle, all corners in front and inside the image by the margin, sides long enough to decode;
-    nearest first, hidden when nearer tags' boxes cover more than the overlap fraction of it; seen
+    nearest first, hidden when a nearer tag with any of its image in the frame (readable or not)
+    covers more than the overlap fraction of its box, or its quiet zone, widened by the re-plan's
+    clearance (none in a plan from the design), crosses the band around its black square; seen
     only when its image is no flatter than `min_side_ratio` (a flatter one still hides others).
     Also each readable tag's depth (its corners' mean, the order `visible` reports)."""
     c = p.config
@@ -97,27 +99,34 @@ def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> tup
         if np.any(pc[:, 2] < 0.1):
             continue
         uv = np.array([(K @ (q / q[2]))[:2] for q in pc])
-        if (uv.min(axis=0) < c.margin_px).any() or uv[:, 0].max() > 1280 - c.margin_px or uv[:, 1].max() > 720 - c.margin_px:
-            continue
-        if np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).min() < c.min_side_px:
-            continue
-        boxes.append((pc[:, 2].mean(), tid, uv.min(axis=0), uv.max(axis=0), uv))
+        if (uv.max(axis=0) < 0).any() or uv[:, 0].min() > 1280 or uv[:, 1].min() > 720:
+            continue                                      # wholly off the frame: hides nothing
+        readable = not ((uv.min(axis=0) < c.margin_px).any() or uv[:, 0].max() > 1280 - c.margin_px
+                        or uv[:, 1].max() > 720 - c.margin_px
+                        or np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).min() < c.min_side_px)
+        boxes.append((pc[:, 2].mean(), tid, uv.min(axis=0), uv.max(axis=0), uv, readable))
     boxes.sort(key=lambda b: (b[0], b[1]))
     seen, kept = [], []
-    for _, tid, lo, hi, uv in boxes:
+    for _, tid, lo, hi, uv, readable in boxes:
         covered = max((np.prod(np.clip(np.minimum(hi, h2) - np.maximum(lo, l2), 0, None)) for l2, h2, _ in kept),
                       default=0.0)
         # the detector's rule (fiducials.partly_hidden): a nearer tag's quiet zone across the band
-        # around this one's black square
+        # around this one's black square, the quiet zone widened by the clearance (in its own cells)
         band = grown_quad(uv, 0.5).astype(np.float32)
         cell = abs(cv2.contourArea(uv.astype(np.float32))) / 64.0
-        crossed = any(cv2.intersectConvexConvex(grown_quad(q, 1.0).astype(np.float32), band)[0]
-                      > HIDDEN_MIN_OVERLAP_CELLS2 * cell for _, _, q in kept)
+
+        def outer(q):
+            side = np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1).mean() / 8.0
+            clearance = c.replan_hidden_clearance_px if p._camera_of is not None else 0.0
+            return grown_quad(q, 1.0 + clearance / side).astype(np.float32)
+
+        crossed = any(cv2.intersectConvexConvex(outer(q), band)[0] > HIDDEN_MIN_OVERLAP_CELLS2 * cell
+                      for _, _, q in kept)
         kept.append((lo, hi, uv))
         # a tag seen flatter than the graph takes still hides the others, but is not counted seen
         sides = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1)
         flat = sides.min() < c.min_side_ratio * sides.max()
-        if covered <= c.occlusion_overlap * np.prod(hi - lo) and not crossed and not flat:
+        if readable and covered <= c.occlusion_overlap * np.prod(hi - lo) and not crossed and not flat:
             seen.append(tid)
     return seen, {tid: depth for depth, tid, *_ in boxes}
 
