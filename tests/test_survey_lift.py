@@ -131,7 +131,7 @@ def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> tup
     return seen, {tid: depth for depth, tid, *_ in boxes}
 
 
-@pytest.mark.parametrize("n", [3, 4])
+@pytest.mark.parametrize("n", [3, 4, 9])
 def test_visibility_follows_the_rules_tag_by_tag(n):
     p = planner(n)
     rng = np.random.default_rng(n)
