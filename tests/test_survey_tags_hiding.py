@@ -15,30 +15,7 @@ from lab.core.config import load_rig
 from lab.core.structures.borg import build_borg
 from procedures.survey import CameraModel, SurveyConfig, SurveyPlanner, View, unoccluded
 
-RIG = load_rig().for_borg(8)
 K = np.array([[914.0, 0.0, 639.5], [0.0, 914.0, 359.5], [0.0, 0.0, 1.0]])
-
-
-def test_a_nearer_tags_border_across_a_corner_hides_the_tag_from_the_plan():
-    kin = StewartKinematics(RIG.stewart.geometry)
-    camera = CameraModel(K, 1280, 720, RIG.stewart.world_T_base, RIG.stewart.geometry.home_m,
-                         RIG.camera.platform_T_camera)
-    p = SurveyPlanner(build_borg(8), camera, lambda pose: kin.inverse(pose).reachable,
-                      (RIG.turntable.min_rad, RIG.turntable.max_rad), lift_limits_m=(RIG.lift.min_m, RIG.lift.max_m))
-    names = [m.name for m in p.model.modules]
-    placed = names[:names.index("362P") + 1]
-    present = set(p.model.turntable.tag_ids).union(*(p.model.module_by_name[n].tags for n in placed))
-    hidden = View(np.pi, (0.0, -0.04, 0.0, 0.0, 0.0, 0.0), 2.25)
-    clear = View(3.32, (0.0, -0.04, 0.0, 0.0, 0.0, 0.0), 2.25)      # the re-plan's: the tag was read there
-    assert 489 not in p.visible(hidden, present)
-    assert 489 in p.visible(clear, present)
-    # the box rule alone would count on the hidden view (else this test shows nothing)
-    g = p._geometry(hidden)
-    idx = p.present_index(present)
-    idx = idx[g.ok[idx]]
-    idx = idx[np.lexsort((p._ids[idx], g.depth[idx]))]
-    row = int(np.flatnonzero(p._ids[idx] == 489)[0])
-    assert unoccluded(g.lo[idx], g.hi[idx], np.array([row]), p.config.occlusion_overlap)[0]
 
 
 def _planner(n: int, config=None) -> SurveyPlanner:
@@ -55,6 +32,22 @@ def _present_at(p: SurveyPlanner, module: str) -> set[int]:
     names = [m.name for m in p.model.modules]
     return set(p.model.turntable.tag_ids).union(*(p.model.module_by_name[n].tags
                                                    for n in names[:names.index(module) + 1]))
+
+
+def test_a_nearer_tags_border_across_a_corner_hides_the_tag_from_the_plan():
+    p = _planner(8)
+    present = _present_at(p, "362P")
+    hidden = View(np.pi, (0.0, -0.04, 0.0, 0.0, 0.0, 0.0), 2.25)
+    clear = View(3.32, (0.0, -0.04, 0.0, 0.0, 0.0, 0.0), 2.25)      # the re-plan's: the tag was read there
+    assert 489 not in p.visible(hidden, present)
+    assert 489 in p.visible(clear, present)
+    # the box rule alone would count on the hidden view (else this test shows nothing)
+    g = p._geometry(hidden)
+    idx = p.present_index(present)
+    idx = idx[g.ok[idx]]
+    idx = idx[np.lexsort((p._ids[idx], g.depth[idx]))]
+    row = int(np.flatnonzero(p._ids[idx] == 489)[0])
+    assert unoccluded(g.lo[idx], g.hi[idx], np.array([row]), p.config.occlusion_overlap)[0]
 
 
 def test_a_tag_too_near_the_frames_edge_to_read_still_hides_what_is_behind_it():
