@@ -402,10 +402,13 @@ class SurveyPlanner:
         for i, j in zip(*np.nonzero(touch)):
             near, far = g.quad[g.row[idx[j]]], g.quad[g.row[idx[rows[i]]]]
             band = grown_quad(far, _HIDDEN_MARGIN_CELLS).astype(np.float32)
-            # the clearance in the nearer tag's cells (its side / 8), grown in its own plane as the quiet zone is
-            cell_px = float(np.linalg.norm(np.roll(near, -1, axis=0) - near, axis=1).mean()) / 8.0
-            outer = grown_quad(near, _QUIET_CELLS + clear / max(cell_px, 1e-9))
-            shared, _ = cv2.intersectConvexConvex(outer.astype(np.float32), band)
+            cells = _QUIET_CELLS
+            if clear:
+                # the clearance in the nearer tag's cells (its side / 8), grown in its own plane as the
+                # quiet zone is
+                cell_px = float(np.linalg.norm(np.roll(near, -1, axis=0) - near, axis=1).mean()) / 8.0
+                cells += clear / max(cell_px, 1e-9)
+            shared, _ = cv2.intersectConvexConvex(grown_quad(near, cells).astype(np.float32), band)
             if shared > HIDDEN_MIN_OVERLAP_CELLS2 * abs(cv2.contourArea(far.astype(np.float32))) / 64.0:
                 covers[i, j] = True
         return covers
