@@ -270,9 +270,22 @@ def test_a_replay_of_a_finished_run_gives_its_verdicts_and_times_each_part(lab, 
     seen = s["sightings"]
     assert seen["near_tags_per_view"] == data["near_tags_per_view"] == 5 and 0 < seen["in_graph"] <= seen["detected"]
     assert (data["sightings_in_graph"], data["sightings"]) == (seen["in_graph"], seen["detected"])
+    # the replayed graph's rig against the simulated truth, rebuilt from the run's rig and
+    # scenario: the run's own figures, as its summary has them
+    run_rig, mine = s["rig_in_graph"], data["rig_in_graph"]
+    assert run_rig and set(mine) == set(run_rig)
+    for name, part in run_rig.items():
+        assert mine[name]["dof"] == part["dof"] and abs(mine[name]["nees"] - part["nees"]) <= 1e-6 * part["nees"], name
     md = lab(["bench", "replay", str(out), "--rounds", "2"])
     assert md.returncode == 0 and "2 of " in md.stdout and "verdicts the same" in md.stdout
     assert "re-eliminate, median by quarter" in md.stdout
+    assert "The graph's own rig against the simulated truth" in md.stdout and "| the run |" in md.stdout
+    # without the semantic factors: no related pair tied, and the table says so
+    bare = lab(["bench", "replay", str(out), "--no-semantic", "--json"])
+    assert bare.returncode == 0, bare.stdout + bare.stderr
+    nosem = json.loads(bare.stdout)
+    assert nosem["semantic"] is False and data["semantic"] is True
+    assert nosem["against_summary"]["max_deviation_diff"] > 1e-9      # the run tied related pairs: it moved
     # bad input: one line, exit 2
     for args, said in ((["bench", "replay", str(tmp_path / "nope")], "no such run directory"),
                        (["bench", "replay", str(out), "--rounds", "0"], "--rounds must be at least 1")):

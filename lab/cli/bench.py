@@ -23,7 +23,8 @@ BENCHES: dict[str, tuple[str, str]] = {
     "layers": ("lab.studies.bench_layers", "every BORG module verified, layer by layer, at N = 3..10: faults in every "
                                            "layer, unverified, false flags, error against truth and 1-sigma, cost"),
     "replay": ("lab.studies.bench_replay", "a BORG run's estimator again from its checkpoint: CPU per round and "
-                                           "part (solve, marginals, verdict, release), verdicts against the run's"),
+                                           "part (solve, marginals, verdict, release), verdicts against the run's; "
+                                           "a simulated run's rig in the graph against the truth"),
     "faults": ("lab.studies.bench_faults", "the fault campaign: device faults, kills, signals, bad input, abuse"),
 }
 

@@ -12,7 +12,11 @@ byte) with this checkout's code, and reports:
   marginals), each module's verdict and its release (its relations tied once the verdict is
   final): totals, per-round median / p90 / max, the step by quarter of the run and the worst
   rounds; and inside them iSAM2's updates, its marginals and its estimate;
-- every module's verdict, deviation and 1-sigma against the run's summary.json.
+- every module's verdict, deviation and 1-sigma against the run's summary.json;
+- for a simulated run, the replayed graph's own rig (mount, base, axis, lift, intrinsics) against the
+  simulated world's true rig, each with its NEES, beside the run's (`rig_in_graph`): whether the
+  graph's covariance still covers its rig after every view refined it, and what an estimator
+  change does to that.
 
 So a change to the estimator is measured on the very run that showed the problem (an N = 9 run
 whose verdict marginals took 19 s), paired against the code before it (the same command on the
@@ -46,6 +50,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--settle-after-layers", type=int, default=None, metavar="K",
                    help="settle each layer once a module K layers above it is released (0: never, the full graph; "
                         "default: the run's own, from its summary; a run from before settling: 0)")
+    p.add_argument("--no-semantic", action="store_true",
+                   help="leave the semantic factors out (no related pair tied to its design), to see what they do")
     p.add_argument("--json", action="store_true", help="print the figures (and every round's) as JSON")
 
 
@@ -96,10 +102,10 @@ class _TimedISAM2:
 
 
 def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | None = None,
-           settle_after_layers: int | None = None) -> dict[str, Any]:
+           settle_after_layers: int | None = None, semantic: bool = True) -> dict[str, Any]:
     """Replay the run in `run_dir` (its first `rounds` rounds; with the estimator's
-    `near_tags_per_view` and `settle_after_layers`, default the run's); the figures `to_markdown`
-    prints."""
+    `near_tags_per_view` and `settle_after_layers`, default the run's, and its semantic factors
+    unless `semantic` is false); the figures `to_markdown` prints."""
     from lab.core.errors import UserError
     from procedures.resume import load_run
     from procedures.borg import views_by_round
@@ -131,6 +137,7 @@ def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | N
         # as the run did: a run from before settling (no `settled` in its summary) kept the whole graph
         settle_after_layers = int((summary.get("settled") or {}).get("after_layers", 0))
     proc.measure.config["settle_after_layers"] = settle_after_layers
+    proc.measure.config["semantic"] = semantic
     clock = _Clock()
     verdicts: dict[str, Any] = {}
     survey_s = 0.0
@@ -160,6 +167,7 @@ def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | N
     try:
         modules = [taken[0]["module"] for _, taken in views_by_round(views)]
         proc.replay_estimator(state, timed, rounds=rounds)
+        rig_truth = rig_against_truth(proc.measure.slam, bench.rig, bench.scenario, info["params"].get("n"))
     finally:
         bench.close()
     for row, module in zip(clock.rounds, modules):
@@ -171,7 +179,22 @@ def replay(run_dir: Path, rounds: int | None = None, near_tags_per_view: int | N
             "near_tags_per_view": proc.measure.near_tags_per_view, "sightings_in_graph": proc.measure.sightings[0],
             "settle_after_layers": proc.measure.settle_after_layers, "settled_tags": len(proc.measure.slam.settled),
             "sightings": proc.measure.sightings[1],
-            "per_round": clock.rounds, "against_summary": compare(verdicts, summary.get("modules", []))}
+            "semantic": semantic, "per_round": clock.rounds,
+            "against_summary": compare(verdicts, summary.get("modules", [])),
+            "rig_in_graph": rig_truth, "rig_in_graph_run": summary.get("rig_in_graph")}
+
+
+def rig_against_truth(slam: Any, rig: Any, scenario: Any, borg_n: int | None) -> dict[str, Any] | None:
+    """(A simulated run only.)  The replayed graph's rig variables against the true rig of the
+    world the run simulated, rebuilt from its rig and scenario (`procedures.rig_survey.
+    graph_against_truth`, as the run's summary reports it); None for a real bench's run or an
+    uncalibrated one (no rig in the graph)."""
+    if rig.sim is None or slam.rig is None:
+        return None
+    from procedures.rig_survey import graph_against_truth
+    from sim_devices.world import SimWorld
+
+    return graph_against_truth(slam, SimWorld(rig, scenario, borg_n=borg_n))
 
 
 def compare(verdicts: dict[str, Any], rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -265,6 +288,26 @@ def to_markdown(res: dict[str, Any], command: str) -> list[str]:
                      f"max {c['sigma_ratio'][2]:.4f})." if c.get("sigma_ratio") else ".")]
     for d in c["verdicts_differ"]:
         lines.append(f"- {d['module']}: the run said {d['run']}, the replay {d['replay']}")
+    lines += _rig_lines(res)
+    return lines
+
+
+RIG_PARTS = ("mount", "base", "axis", "lift", "intrinsics")
+
+
+def _rig_lines(res: dict[str, Any]) -> list[str]:
+    """The graph's rig against the simulated truth at the replay's end, beside the run's."""
+    mine, run = res.get("rig_in_graph"), res.get("rig_in_graph_run") or {}
+    if not mine:
+        return []
+    names = [n for n in RIG_PARTS if n in mine]
+    semantic = "" if res.get("semantic", True) else ", semantic factors left out"
+    lines = ["", f"The graph's own rig against the simulated truth at the end{semantic} (NEES of its marginal; "
+                 "expected about its dof):", "",
+             "| | " + " | ".join(f"{n} ({mine[n]['dof']})" for n in names) + " |", "|---|" + "---|" * len(names),
+             "| replay | " + " | ".join(f"{mine[n]['nees']:.1f}" for n in names) + " |"]
+    if run:
+        lines.append("| the run | " + " | ".join(f"{run[n]['nees']:.1f}" if n in run else "–" for n in names) + " |")
     return lines
 
 
@@ -272,7 +315,8 @@ def run(args: argparse.Namespace) -> int:
     import shlex
     import sys
 
-    res = replay(Path(args.run_dir), args.rounds, args.near_tags_per_view, args.settle_after_layers)
+    res = replay(Path(args.run_dir), args.rounds, args.near_tags_per_view, args.settle_after_layers,
+                 semantic=not args.no_semantic)
     if args.json:
         print(json.dumps(res, default=float))
     else:
