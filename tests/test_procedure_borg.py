@@ -279,7 +279,7 @@ def test_a_replay_of_a_finished_run_gives_its_verdicts_and_times_each_part(lab, 
     md = lab(["bench", "replay", str(out), "--rounds", "2"])
     assert md.returncode == 0 and "2 of " in md.stdout and "verdicts the same" in md.stdout
     assert "re-eliminate, median by quarter" in md.stdout
-    assert "The graph's own rig against the simulated truth" in md.stdout and "| the run |" in md.stdout
+    assert "The graph's own rig against the simulated truth" in md.stdout and "| the run, at its end |" in md.stdout
     # without the semantic factors: no related pair tied, and the table says so
     bare = lab(["bench", "replay", str(out), "--no-semantic", "--json"])
     assert bare.returncode == 0, bare.stdout + bare.stderr

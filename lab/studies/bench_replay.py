@@ -302,12 +302,12 @@ def _rig_lines(res: dict[str, Any]) -> list[str]:
         return []
     names = [n for n in RIG_PARTS if n in mine]
     semantic = "" if res.get("semantic", True) else ", semantic factors left out"
-    lines = ["", f"The graph's own rig against the simulated truth at the end{semantic} (NEES of its marginal; "
-                 "expected about its dof):", "",
+    lines = ["", f"The graph's own rig against the simulated truth where the replay ended{semantic} (NEES of its "
+                 "marginal; expected about its dof):", "",
              "| | " + " | ".join(f"{n} ({mine[n]['dof']})" for n in names) + " |", "|---|" + "---|" * len(names),
              "| replay | " + " | ".join(f"{mine[n]['nees']:.1f}" for n in names) + " |"]
     if run:
-        lines.append("| the run | " + " | ".join(f"{run[n]['nees']:.1f}" if n in run else "–" for n in names) + " |")
+        lines.append("| the run, at its end | " + " | ".join(f"{run[n]['nees']:.1f}" if n in run else "–" for n in names) + " |")
     return lines
 
 
