@@ -292,15 +292,13 @@ def to_markdown(res: dict[str, Any], command: str) -> list[str]:
     return lines
 
 
-RIG_PARTS = ("mount", "base", "axis", "lift", "intrinsics")
-
-
 def _rig_lines(res: dict[str, Any]) -> list[str]:
-    """The graph's rig against the simulated truth at the replay's end, beside the run's."""
+    """The graph's rig against the simulated truth at the replay's end, beside the run's (in the
+    order `graph_against_truth` gives its parts)."""
     mine, run = res.get("rig_in_graph"), res.get("rig_in_graph_run") or {}
     if not mine:
         return []
-    names = [n for n in RIG_PARTS if n in mine]
+    names = list(mine)
     semantic = "" if res.get("semantic", True) else ", semantic factors left out"
     lines = ["", f"The graph's own rig against the simulated truth where the replay ended{semantic} (NEES of its "
                  "marginal; expected about its dof):", "",
