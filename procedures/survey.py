@@ -33,7 +33,8 @@ from typing import Callable, Iterable, Sequence
 import cv2
 import numpy as np
 
-from estimation.fiducials import HIDDEN_MIN_OVERLAP_CELLS2, DetectorConfig, grown_quad, tag_object_points
+from estimation.fiducials import (HIDDEN_MIN_OVERLAP_CELLS2, HIDDEN_ORDER_MIN_M, DetectorConfig, grown_quad,
+                                  tag_object_points)
 from estimation.precision import covariance_from_information, module_sigma, view_information
 from estimation.rig_model import MIN_SIDE_RATIO
 from estimation.semantics import STRUT_END_DIAMETER_M as STRUT_DIAMETER_M
@@ -59,13 +60,15 @@ def unoccluded(lo: np.ndarray, hi: np.ndarray, rows: np.ndarray, overlap: float)
     return ~box_covers(lo, hi, rows, overlap).any(axis=1)
 
 
-# the detector's hiding rule (`estimation.fiducials.partly_hidden`) as the run's detector applies it:
+# the detector's hiding rule (`estimation.fiducials.hidden_behind`) as the run's detector applies it:
 # a tag's quiet zone is one cell wide, and its black square counts grown by the detector's margin.
-# The planner takes the nearer centre to be in front, as the detector does without predictions;
-# a run's detector orders two overlapping cards by their predicted planes where they meet, so
-# for neighbours a misplaced module pushed together the planner may count hidden a tag the run
-# reads (it then looks for other views: the safe side)
+# Which of two overlapping tags is in front is decided as the run's detector decides it (it has
+# every tag's predicted plane): the plane nearer along the line of sight through the overlap, where
+# the two differ by more than HIDDEN_ORDER_MIN_M, else the nearer centre.  Centres within
+# _CENTRE_TIE_M of each other (the detector's come from single-view poses) count either way: each
+# tag is counted hidden by the other (the safe side: the plan looks for other views)
 _QUIET_CELLS = 1.0
+_CENTRE_TIE_M = 0.005
 _HIDDEN_MARGIN_CELLS = float(DetectorConfig().hidden_margin_cells or 0.0)
 # how far past its black square's image box a grown square can reach, as a fraction of the box
 # (a square grown by c of its 8 cells reaches c/8 of its side in the tag's plane; perspective is
@@ -220,6 +223,8 @@ class _ViewGeometry:
     # the image, for the detector's hiding rule
     row: np.ndarray         # (T,) int
     quad: np.ndarray        # (F, 4, 2) px
+    centre_m: np.ndarray    # (T,) m: each tag's centre's distance from the camera (NaN: not facing)
+    plane: np.ndarray       # (T, 4): its plane in the camera frame, unit normal and offset (n.X = d)
 
 
 class SurveyPlanner:
@@ -378,27 +383,34 @@ class SurveyPlanner:
         depth[f] = pc[:, :, 2].mean(axis=1)
         lo, hi = np.full((len(facing), 2), np.nan), np.full((len(facing), 2), np.nan)
         lo[f], hi[f] = lo_f, hi_f
-        g = _ViewGeometry(ok, drawn, measured, depth, lo, hi, row, uv)
+        centre_c = pc.mean(axis=1)
+        centre_m = np.full(len(facing), np.nan)
+        centre_m[f] = np.linalg.norm(centre_c, axis=1)
+        plane = np.full((len(facing), 4), np.nan)
+        normal_c = normals[f] @ c_T_s[:3, :3].T
+        plane[f] = np.column_stack([normal_c, np.einsum("ij,ij->i", normal_c, centre_c)])
+        g = _ViewGeometry(ok, drawn, measured, depth, lo, hi, row, uv, centre_m, plane)
         self._geometry_cache[view] = g
         return g
 
     def _covers(self, g: _ViewGeometry, idx: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """(len(rows), len(idx)): whether tag idx[j] hides tag idx[rows[i]], `idx` sorted nearest
-        first (only nearer ones, earlier in `idx`, hide): its image box covers more than
-        `occlusion_overlap` of the other's, or its outer edge overlaps the other's black square
-        grown by the detector's margin by more than `HIDDEN_MIN_OVERLAP_CELLS2` of its cells (the
-        detector's `partly_hidden`, which drops such a tag)."""
+        first: a nearer one's (earlier in `idx`) image box covers more than `occlusion_overlap` of
+        the other's, or, by the detector's rule (`fiducials.hidden_behind`, which drops such a
+        tag), any tag's outer edge overlaps the other's black square grown by the detector's margin
+        by more than `HIDDEN_MIN_OVERLAP_CELLS2` of its cells and the detector would judge it in
+        front (`_in_front`: for two cards on one face that is not the nearer along the optical axis)."""
         lo, hi = g.lo[idx], g.hi[idx]
         covers = box_covers(lo, hi, rows, self.config.occlusion_overlap)
-        nearer = np.arange(len(idx))[None, :] < rows[:, None]
         # the detector's rule, on the pairs whose boxes, grown past what the quiet zone and the
         # margin can add under any perspective the candidates see, still meet
         size = hi - lo
         clear = self.config.replan_hidden_clearance_px if self._camera_of is not None else 0.0
         o_lo, o_hi = lo - _OUTER_REACH * size - 2 * clear, hi + _OUTER_REACH * size + 2 * clear
         i_lo, i_hi = lo[rows] - _INNER_REACH * size[rows], hi[rows] + _INNER_REACH * size[rows]
+        itself = np.arange(len(idx))[None, :] == rows[:, None]
         touch = (np.all(o_lo[None] < i_hi[:, None], axis=2) & np.all(i_lo[:, None] < o_hi[None], axis=2)
-                 & nearer & ~covers)
+                 & ~itself & ~covers)
         for i, j in zip(*np.nonzero(touch)):
             near, far = g.quad[g.row[idx[j]]], g.quad[g.row[idx[rows[i]]]]
             band = grown_quad(far, _HIDDEN_MARGIN_CELLS).astype(np.float32)
@@ -408,10 +420,22 @@ class SurveyPlanner:
                 # quiet zone is
                 cell_px = float(np.linalg.norm(np.roll(near, -1, axis=0) - near, axis=1).mean()) / 8.0
                 cells += clear / max(cell_px, 1e-9)
-            shared, _ = cv2.intersectConvexConvex(grown_quad(near, cells).astype(np.float32), band)
-            if shared > HIDDEN_MIN_OVERLAP_CELLS2 * abs(cv2.contourArea(far.astype(np.float32))) / 64.0:
+            shared, poly = cv2.intersectConvexConvex(grown_quad(near, cells).astype(np.float32), band)
+            if (shared > HIDDEN_MIN_OVERLAP_CELLS2 * abs(cv2.contourArea(far.astype(np.float32))) / 64.0
+                    and self._in_front(g, idx[j], idx[rows[i]], np.asarray(poly, np.float64).reshape(-1, 2))):
                 covers[i, j] = True
         return covers
+
+    def _in_front(self, g: _ViewGeometry, a: int, b: int, overlap: np.ndarray) -> bool:
+        """Whether the run's detector may judge tag `a` in front of tag `b` where they overlap
+        (`overlap`: the polygon, px): as `fiducials.hidden_behind` with both planes predicted, the
+        plane nearer along the line of sight through the overlap's centre where they differ by
+        more than HIDDEN_ORDER_MIN_M, else the nearer centre, a tie within _CENTRE_TIE_M either way."""
+        ray = np.linalg.solve(self.camera.K, [*overlap.mean(axis=0), 1.0])
+        depth_a, depth_b = (g.plane[k, 3] / (g.plane[k, :3] @ ray) for k in (a, b))
+        if abs(depth_a - depth_b) > HIDDEN_ORDER_MIN_M:
+            return bool(depth_a < depth_b)
+        return bool(g.centre_m[a] < g.centre_m[b] + _CENTRE_TIE_M)
 
     def present_index(self, present: Iterable[int]) -> np.ndarray:
         """`present` (tag ids) as sorted indices into the planner's tag table, for `visible`."""

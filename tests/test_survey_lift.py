@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from drivers.stewart_kinematics import StewartKinematics
-from estimation.fiducials import HIDDEN_MIN_OVERLAP_CELLS2, grown_quad
+from estimation.fiducials import HIDDEN_MIN_OVERLAP_CELLS2, HIDDEN_ORDER_MIN_M, grown_quad
 from lab.core.config import load_rig
 from lab.core.structures.borg import build_borg
 from procedures.survey import CameraModel, SurveyPlanner, View
@@ -79,8 +79,9 @@ def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> tup
     """The documented rules, one tag at a time: near enough, facing the camera within the view
     angle, all corners in front and inside the image by the margin, sides long enough to decode;
     nearest first, hidden when a nearer tag with any of its image in the frame (readable or not)
-    covers more than the overlap fraction of its box, or its quiet zone, widened by the re-plan's
-    clearance (none in a plan from the design), crosses the band around its black square; seen
+    covers more than the overlap fraction of its box, or when another such tag's quiet zone,
+    widened by the re-plan's clearance (none in a plan from the design), crosses the band around
+    its black square and the detector would put that tag in front; seen
     only when its image is no flatter than `min_side_ratio` (a flatter one still hides others).
     Also each readable tag's depth (its corners' mean, the order `visible` reports)."""
     c = p.config
@@ -104,10 +105,22 @@ def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> tup
         readable = not ((uv.min(axis=0) < c.margin_px).any() or uv[:, 0].max() > 1280 - c.margin_px
                         or uv[:, 1].max() > 720 - c.margin_px
                         or np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1).min() < c.min_side_px)
-        boxes.append((pc[:, 2].mean(), tid, uv.min(axis=0), uv.max(axis=0), uv, readable))
+        normal = c_T_s[:3, :3] @ T.rotation().matrix()[:, 2]
+        centre = pc.mean(axis=0)
+        boxes.append((pc[:, 2].mean(), tid, uv.min(axis=0), uv.max(axis=0), uv, readable,
+                       float(np.linalg.norm(centre)), np.array([*normal, normal @ centre])))
     boxes.sort(key=lambda b: (b[0], b[1]))
+
+    def in_front(a, b, overlap):
+        # the detector's order with both planes predicted: the nearer plane along the line of
+        # sight through the overlap, else the nearer centre (a tie within 5 mm: either way)
+        ray = np.linalg.solve(K, [*np.asarray(overlap, float).reshape(-1, 2).mean(axis=0), 1.0])
+        da, db = (x[7][3] / (x[7][:3] @ ray) for x in (a, b))
+        return da < db if abs(da - db) > HIDDEN_ORDER_MIN_M else a[6] < b[6] + 0.005
+
     seen, kept = [], []
-    for _, tid, lo, hi, uv, readable in boxes:
+    for this in boxes:
+        _, tid, lo, hi, uv, readable = this[:6]
         covered = max((np.prod(np.clip(np.minimum(hi, h2) - np.maximum(lo, l2), 0, None)) for l2, h2, _ in kept),
                       default=0.0)
         # the detector's rule (fiducials.partly_hidden): a nearer tag's quiet zone across the band
@@ -120,8 +133,13 @@ def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> tup
             clearance = c.replan_hidden_clearance_px if p._camera_of is not None else 0.0
             return grown_quad(q, 1.0 + clearance / side).astype(np.float32)
 
-        crossed = any(cv2.intersectConvexConvex(outer(q), band)[0] > HIDDEN_MIN_OVERLAP_CELLS2 * cell
-                      for _, _, q in kept)
+        crossed = False
+        for other in boxes:
+            if other[1] == tid:
+                continue
+            area, overlap = cv2.intersectConvexConvex(outer(other[4]), band)
+            if area > HIDDEN_MIN_OVERLAP_CELLS2 * cell and in_front(other, this, overlap):
+                crossed = True
         kept.append((lo, hi, uv))
         # a tag seen flatter than the graph takes still hides the others, but is not counted seen
         sides = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1)

@@ -86,3 +86,47 @@ def test_a_re_plan_does_not_count_on_a_tag_predicted_clear_of_a_nearer_one_by_le
         seen[clearance] = 589 in adapted.visible(view, _present_at(p, "401P"))
     assert seen == {0.0: True, 2.0: False}
     assert SurveyConfig().replan_hidden_clearance_px == 2.0
+
+
+def test_a_plan_orders_two_cards_on_one_face_as_the_detector_does():
+    # N = 10 seed 4: 639S, placed 2.8 mm up, put its tag 888's card over the quiet zone of 640S's
+    # tag 889, 12 cm above it on the same face.  The re-plan took the tag nearer along the optical
+    # axis to be in front and predicted 889 clear six times; the detector, whose predicted planes
+    # agree there, keeps the card with the nearer centre (888, seen from below) and dropped 889
+    # every time.  Here: a face leaning 3 deg toward a camera that looks level, the upper tag
+    # 6 mm nearer along the axis and 12 mm farther from the camera; the plan must see what the
+    # detector on the rendered frame reads.
+    from estimation.fiducials import TagDetector
+    from lab.core.geometry import Pose3, Rot3
+    from sim_devices.render import render_tags
+
+    p = _planner(3)
+    upper_id, lower_id = sorted(p.model.tags)[:2]
+    size = p.model.tags[upper_id].size_m
+    assert p.model.tags[lower_id].size_m == size
+    view = p.candidates[0]
+    s_T_c = p.structure_T_camera(view)
+    camera, forward = s_T_c.translation(), s_T_c.rotation().matrix()[:, 2]
+    assert abs(forward[2]) < 1e-9                                   # the camera looks level
+    lean = np.radians(3.0)
+    up = np.array([0.0, 0.0, 1.0])
+    across = np.cross(up, -forward)
+    face_up = np.cos(lean) * up - np.sin(lean) * forward           # the top leans toward the camera
+    normal = np.cross(across, face_up)
+    rot = Rot3(np.column_stack([across, face_up, normal]))
+    upper_at = camera + 1.6 * forward + 0.3 * up
+    poses = {upper_id: Pose3(rot, upper_at), lower_id: Pose3(rot, upper_at - (0.12 - 0.0028) * face_up)}
+    adapted = p.adapted(p.structure_T_camera, poses)
+    g = adapted._geometry(view)
+    iu, il = adapted._index[upper_id], adapted._index[lower_id]
+    # what makes the case: the optical axis and the centres put different tags in front
+    assert g.depth[iu] < g.depth[il] and g.centre_m[iu] > g.centre_m[il]
+
+    c_T_s = s_T_c.inverse()
+    seen_as = {t: c_T_s.compose(pose) for t, pose in poses.items()}
+    img = render_tags(K, None, 1280, 720, [(t, size, pose) for t, pose in seen_as.items()], background=110.0,
+                      blur_sigma_px=0.8, noise_sigma=2.0, rng=np.random.default_rng(1))
+    det = TagDetector(K, np.zeros(5), {upper_id: size, lower_id: size})
+    read, behind = det.detect_with_hidden(img, seen_as.get)
+    assert [d.tag_id for d in read] == [lower_id] and behind == {upper_id: lower_id}
+    assert adapted.visible(view, {upper_id, lower_id}) == [lower_id]
