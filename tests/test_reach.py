@@ -1,7 +1,7 @@
 """Reach (issue 23): the default rig verifies BORG structures up to 10x10x10.  A turntable wider
-than the near pedestal leaves room for (N >= 8) puts the Stewart base on its far station, the
-lift's 5 m mast carries the camera to the top layers, and a dry run finds every module of an
-8x8x8 observable before anything moves."""
+than the near pedestal leaves room for puts the Stewart base on its middle station (N = 7) or its
+far one (N >= 8), the lift's 5 m mast carries the camera to the top layers, and a dry run finds
+every module of an 8x8x8 observable before anything moves."""
 
 from __future__ import annotations
 
@@ -19,14 +19,14 @@ from lab.core.structures.borg import SPACING_M, build_borg, turntable_radius_m
 
 def test_the_base_stands_at_the_first_station_clear_of_the_turntable():
     rig = load_rig()
-    assert [s.name for s in rig.stewart.stations] == ["near", "far"] and rig.stewart.station == "near"
+    assert [s.name for s in rig.stewart.stations] == ["near", "mid", "far"] and rig.stewart.station == "near"
     for n in range(2, 11):
         at = rig.for_borg(n)
         radius = turntable_radius_m(n * SPACING_M)
         joints = np.array([at.stewart.world_T_base.transformFrom(j) for j in at.stewart.geometry.base_joints_m])
         clear = np.hypot(joints[:, 0], joints[:, 1]).min() - radius
         standoff = np.hypot(*at.stewart.world_T_base.translation()[:2]) - radius
-        assert at.stewart.station == ("near" if n <= 6 else "far"), n
+        assert at.stewart.station == ("near" if n <= 6 else "mid" if n == 7 else "far"), n
         assert clear >= rig.stewart.clearance_m and standoff >= rig.stewart.rim_standoff_m, (n, clear, standoff)
         if n == 7:    # the near base clears its rim, but stands too close for the camera to see it
             near = np.array([rig.stewart.world_T_base.transformFrom(j) for j in rig.stewart.geometry.base_joints_m])
@@ -52,9 +52,9 @@ def _rig_text(tmp_path: Path, edit) -> Path:
 
 @pytest.mark.parametrize("edit, match", [
     (lambda t: t.replace('name = "far"', 'name = "near"'), r"\[stewart\]\.stations: station name 'near' used twice"),
-    (lambda t: t.replace('name = "far"', 'name = "far"\nheight_m = 1'), r"\[stewart\.stations\[0\]\]\.height_m: unknown key"),
+    (lambda t: t.replace('name = "far"', 'name = "far"\nheight_m = 1'), r"\[stewart\.stations\[1\]\]\.height_m: unknown key"),
     (lambda t: t.replace('world_T_base = { xyz_m = [-4.45, 0.0, 0.27]', 'world_T_base = { xyz_m = [-4.45, 0.0]'),
-     r"\[stewart\.stations\[0\]\.world_T_base\]\.xyz_m: expected a list of 3 numbers"),
+     r"\[stewart\.stations\[1\]\.world_T_base\]\.xyz_m: expected a list of 3 numbers"),
     (lambda t: t.replace("clearance_m = 0.05", "clearance_m = -1"), r"\[stewart\]\.clearance_m: must be >= 0"),
     (lambda t: t.replace("rim_standoff_m = 0.6", "rim_standoff_m = nan"), r"\[stewart\]\.rim_standoff_m: "),
 ])
@@ -85,13 +85,16 @@ def test_a_rig_survey_that_would_see_no_rim_tag_is_refused_before_anything_moves
 
 
 @pytest.mark.slow      # CI keeps the 8x8x8's (the same station); this one guards the planner's reach
-def test_a_dry_run_finds_every_module_of_a_7x7x7_observable_from_the_far_station(lab):
-    """The near base is too close to a 7x7x7's rim (above); from the far one its centre column's
-    tags are 4.2 m from the camera, within the planner's reach (`SurveyConfig.max_distance_m`)."""
+def test_a_dry_run_finds_every_module_of_a_7x7x7_observable_from_the_middle_station(lab):
+    """The near base is too close to a 7x7x7's rim (above); from the middle one, 0.4 m further
+    back, every module is seen, and in half the views the far station took (1.6 m from the face,
+    not 2.7 m: 774 views planned at stop 53, 1520 from the far station)."""
     r = lab(["run", "borg", "--n", "7", "--dry-run"], timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "dry run of borg: 236 steps planned" in r.stdout
     assert "REFUSED" not in r.stdout and "unobservable" not in r.stdout + r.stderr
+    views = re.search(r"(\d+) views planned for 235 modules", r.stdout)
+    assert views and int(views[1]) <= 235 * 4
 
 
 def test_a_dry_run_finds_every_module_of_an_8x8x8_observable(lab):
