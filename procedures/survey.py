@@ -12,8 +12,10 @@ covariance in the graph, when its verdict came out `uncertain`.  Visibility is p
 expected in a view when its four corners project into the image with a margin, it is large enough
 to decode, it faces the camera within `max_view_angle`, and no nearer tag covers it: neither a
 quarter of its image box (`occlusion_overlap`) nor, by the detector's own rule
-(`estimation.fiducials.partly_hidden`), the band around its black square with its quiet zone -- a
-nearer tag's white border across one corner is enough for the detector to drop the tag.  A tag
+(`estimation.fiducials.hidden_behind`), the band around its black square with its quiet zone -- a
+nearer tag's white border across one corner is enough for the detector to drop the tag; which of
+two such tags is in front is what the detector will judge (their predicted planes where they
+meet, else their centres), not their depth along the optical axis.  A tag
 read but seen flatter than the graph takes a sighting (`min_side_ratio`) still hides what is
 behind it, but the plan does not count it as seen: the graph would measure nothing from it.
 
