@@ -37,7 +37,7 @@ def _read(world: SimWorld, kin: StewartKinematics, detector: TagDetector, view: 
 
 @pytest.fixture(scope="module")
 def bench():
-    rig = load_rig().for_borg(N)
+    rig = load_rig().for_borg(N).at_station("far")     # where the case was found (N = 7 stood far until stop 53)
     world = SimWorld(rig, parse_scenario({"seed": 0, "borg": {"fault": [
         {"kind": "partial_deploy", "module": SHORT, "height_m": HEIGHT}]}}), borg_n=N)
     model = world.borg.model
