@@ -1,8 +1,8 @@
 """Reach (issue 23): the default rig verifies BORG structures up to 10x10x10.  A turntable wider
-than the near pedestal leaves room for puts the Stewart base on a station further back (the
-first that leaves 0.6 m between the base and the rim: `mid` for N = 7, `far` for N >= 8), the
-lift's 5 m mast carries the camera to the top layers, and a dry run finds every module of an
-8x8x8 observable before anything moves."""
+than the near pedestal leaves room for puts the Stewart base on a station further back (the first
+that leaves 0.65 m between the base and the rim: `mid` for N = 7, `back` for 8, `far` for 9 and
+10), the lift's 5 m mast carries the camera to the top layers, and a dry run finds every module of
+an 8x8x8 observable before anything moves."""
 
 from __future__ import annotations
 
@@ -20,14 +20,14 @@ from lab.core.structures.borg import SPACING_M, build_borg, turntable_radius_m
 
 def test_the_base_stands_at_the_first_station_clear_of_the_turntable():
     rig = load_rig()
-    assert [s.name for s in rig.stewart.stations] == ["near", "mid", "far"] and rig.stewart.station == "near"
+    assert [s.name for s in rig.stewart.stations] == ["near", "mid", "back", "far"] and rig.stewart.station == "near"
     for n in range(2, 11):
         at = rig.for_borg(n)
         radius = turntable_radius_m(n * SPACING_M)
         joints = np.array([at.stewart.world_T_base.transformFrom(j) for j in at.stewart.geometry.base_joints_m])
         clear = np.hypot(joints[:, 0], joints[:, 1]).min() - radius
         standoff = np.hypot(*at.stewart.world_T_base.translation()[:2]) - radius
-        assert at.stewart.station == ("near" if n <= 6 else "mid" if n == 7 else "far"), n
+        assert at.stewart.station == {7: "mid", 8: "back", 9: "far", 10: "far"}.get(n, "near"), n
         assert clear >= rig.stewart.clearance_m and standoff >= rig.stewart.rim_standoff_m, (n, clear, standoff)
         if n == 7:    # the near base clears its rim, but stands too close for the camera to see it
             near = np.array([rig.stewart.world_T_base.transformFrom(j) for j in rig.stewart.geometry.base_joints_m])
@@ -53,11 +53,11 @@ def _rig_text(tmp_path: Path, edit) -> Path:
 
 @pytest.mark.parametrize("edit, match", [
     (lambda t: t.replace('name = "far"', 'name = "near"'), r"\[stewart\]\.stations: station name 'near' used twice"),
-    (lambda t: t.replace('name = "far"', 'name = "far"\nheight_m = 1'), r"\[stewart\.stations\[1\]\]\.height_m: unknown key"),
+    (lambda t: t.replace('name = "far"', 'name = "far"\nheight_m = 1'), r"\[stewart\.stations\[2\]\]\.height_m: unknown key"),
     (lambda t: t.replace('world_T_base = { xyz_m = [-4.45, 0.0, 0.27]', 'world_T_base = { xyz_m = [-4.45, 0.0]'),
-     r"\[stewart\.stations\[1\]\.world_T_base\]\.xyz_m: expected a list of 3 numbers"),
+     r"\[stewart\.stations\[2\]\.world_T_base\]\.xyz_m: expected a list of 3 numbers"),
     (lambda t: t.replace("clearance_m = 0.05", "clearance_m = -1"), r"\[stewart\]\.clearance_m: must be >= 0"),
-    (lambda t: t.replace("rim_standoff_m = 0.6", "rim_standoff_m = nan"), r"\[stewart\]\.rim_standoff_m: "),
+    (lambda t: t.replace("rim_standoff_m = 0.65", "rim_standoff_m = nan"), r"\[stewart\]\.rim_standoff_m: "),
 ])
 def test_a_bad_station_is_one_line_naming_the_key(tmp_path, edit, match):
     with pytest.raises(RigError, match=match):
@@ -67,7 +67,7 @@ def test_a_bad_station_is_one_line_naming_the_key(tmp_path, edit, match):
 def _no_standoff(tmp_path: Path) -> Path:
     """The sim rig without its rim standoff: a 7x7x7's base stands at the near station, 0.33 m from
     the turntable's rim, where the rim tags pass under the camera's field."""
-    return _rig_text(tmp_path, lambda t: t.replace("rim_standoff_m = 0.6", "rim_standoff_m = 0.0"))
+    return _rig_text(tmp_path, lambda t: t.replace("rim_standoff_m = 0.65", "rim_standoff_m = 0.0"))
 
 
 def test_a_rig_survey_that_would_see_no_rim_tag_is_refused_before_anything_moves(lab, tmp_path):
