@@ -194,6 +194,17 @@ HIDDEN_MIN_OVERLAP_CELLS2 = 0.25     # an overlap smaller than this (in the fart
 HIDDEN_ORDER_MIN_M = 0.002
 
 
+def plane_order(plane_a: np.ndarray, plane_b: np.ndarray, ray: np.ndarray) -> bool | None:
+    """Whether plane a (unit normal and offset in the camera frame, n.X = d) is nearer than plane b
+    along the line of sight `ray` (a normalised image point, z = 1); None where the two lie within
+    HIDDEN_ORDER_MIN_M of each other there and so say nothing.  `hidden_behind`'s order for two
+    predicted tags, and the survey planner's prediction of it."""
+    depth_a, depth_b = (p[3] / (p[:3] @ ray) for p in (plane_a, plane_b))
+    if abs(depth_a - depth_b) > HIDDEN_ORDER_MIN_M:
+        return bool(depth_a < depth_b)
+    return None
+
+
 def partly_hidden(corners: Sequence[np.ndarray], distances: Sequence[float], quiet_cells: float,
                   margin_cells: float) -> set[int]:
     """Indices of the tags a nearer one covers (`hidden_behind`'s keys)."""
@@ -241,10 +252,9 @@ def hidden_behind(corners: Sequence[np.ndarray], distances: Sequence[float], qui
             if known[i] and known[j]:
                 assert planes is not None and undistort is not None
                 x, y = undistort(np.asarray(shared, np.float64).reshape(-1, 2).mean(axis=0)[None]).reshape(2)
-                ray = np.array([x, y, 1.0])
-                depth_i, depth_j = (planes[k, 3] / (planes[k, :3] @ ray) for k in (i, j))
-                if abs(depth_i - depth_j) > HIDDEN_ORDER_MIN_M:
-                    j_in_front = bool(depth_j < depth_i)
+                by_planes = plane_order(planes[j], planes[i], np.array([x, y, 1.0]))
+                if by_planes is not None:
+                    j_in_front = by_planes
             if j_in_front:
                 out[i] = j
                 break

@@ -35,7 +35,7 @@ from typing import Callable, Iterable, Sequence
 import cv2
 import numpy as np
 
-from estimation.fiducials import (HIDDEN_MIN_OVERLAP_CELLS2, HIDDEN_ORDER_MIN_M, DetectorConfig, grown_quad,
+from estimation.fiducials import (HIDDEN_MIN_OVERLAP_CELLS2, DetectorConfig, grown_quad, plane_order,
                                   tag_object_points)
 from estimation.precision import covariance_from_information, module_sigma, view_information
 from estimation.rig_model import MIN_SIDE_RATIO
@@ -66,7 +66,7 @@ def unoccluded(lo: np.ndarray, hi: np.ndarray, rows: np.ndarray, overlap: float)
 # a tag's quiet zone is one cell wide, and its black square counts grown by the detector's margin.
 # Which of two overlapping tags is in front is decided as the run's detector decides it (it has
 # every tag's predicted plane): the plane nearer along the line of sight through the overlap, where
-# the two differ by more than HIDDEN_ORDER_MIN_M, else the nearer centre.  Centres within
+# the two differ by more than `fiducials.HIDDEN_ORDER_MIN_M`, else the nearer centre.  Centres within
 # _CENTRE_TIE_M of each other (the detector's come from single-view poses) count either way: each
 # tag is counted hidden by the other (the safe side: the plan looks for other views)
 _QUIET_CELLS = 1.0
@@ -431,12 +431,11 @@ class SurveyPlanner:
     def _in_front(self, g: _ViewGeometry, a: int, b: int, overlap: np.ndarray) -> bool:
         """Whether the run's detector may judge tag `a` in front of tag `b` where they overlap
         (`overlap`: the polygon, px): as `fiducials.hidden_behind` with both planes predicted, the
-        plane nearer along the line of sight through the overlap's centre where they differ by
-        more than HIDDEN_ORDER_MIN_M, else the nearer centre, a tie within _CENTRE_TIE_M either way."""
-        ray = np.linalg.solve(self.camera.K, [*overlap.mean(axis=0), 1.0])
-        depth_a, depth_b = (g.plane[k, 3] / (g.plane[k, :3] @ ray) for k in (a, b))
-        if abs(depth_a - depth_b) > HIDDEN_ORDER_MIN_M:
-            return bool(depth_a < depth_b)
+        plane nearer along the line of sight through the overlap's centre (`fiducials.plane_order`),
+        else the nearer centre, a tie within _CENTRE_TIE_M either way."""
+        by_planes = plane_order(g.plane[a], g.plane[b], np.linalg.solve(self.camera.K, [*overlap.mean(axis=0), 1.0]))
+        if by_planes is not None:
+            return by_planes
         return bool(g.centre_m[a] < g.centre_m[b] + _CENTRE_TIE_M)
 
     def present_index(self, present: Iterable[int]) -> np.ndarray:

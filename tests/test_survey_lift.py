@@ -133,13 +133,11 @@ def _visible_one_by_one(p: SurveyPlanner, view: View, present: list[int]) -> tup
             clearance = c.replan_hidden_clearance_px if p._camera_of is not None else 0.0
             return grown_quad(q, 1.0 + clearance / side).astype(np.float32)
 
-        crossed = False
-        for other in boxes:
-            if other[1] == tid:
-                continue
+        def crosses(other) -> bool:
             area, overlap = cv2.intersectConvexConvex(outer(other[4]), band)
-            if area > HIDDEN_MIN_OVERLAP_CELLS2 * cell and in_front(other, this, overlap):
-                crossed = True
+            return area > HIDDEN_MIN_OVERLAP_CELLS2 * cell and in_front(other, this, overlap)
+
+        crossed = any(crosses(other) for other in boxes if other[1] != tid)
         kept.append((lo, hi, uv))
         # a tag seen flatter than the graph takes still hides the others, but is not counted seen
         sides = np.linalg.norm(np.roll(uv, -1, axis=0) - uv, axis=1)
